@@ -1,0 +1,290 @@
+//! Typed configuration: one struct per stage, loaded from TOML.
+//!
+//! Every field has its default and its documentation in one place, the [`config_section!`]
+//! invocation below; the same text is printed by `dhptam config --defaults` through
+//! [`Config::defaults_toml`]. Unknown keys are rejected with the key named, values are checked
+//! by each section's `validate`, and a resolved configuration round-trips through
+//! [`Config::to_toml`].
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+
+/// Declares a configuration section: the struct, its `Default`, and a writer of commented TOML
+/// built from the fields' doc comments, so the documentation cannot drift from the defaults.
+macro_rules! config_section {
+    (
+        $(#[doc = $sdoc:literal])*
+        $name:ident {
+            $( $(#[doc = $doc:literal])* $field:ident : $ty:ty = $default:expr ),* $(,)?
+        }
+    ) => {
+        $(#[doc = $sdoc])*
+        #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+        #[serde(deny_unknown_fields, default)]
+        pub struct $name {
+            $( $(#[doc = $doc])* pub $field: $ty, )*
+        }
+
+        impl Default for $name {
+            fn default() -> Self {
+                Self { $( $field: $default, )* }
+            }
+        }
+
+        impl $name {
+            /// Writes the fields as TOML `key = value` lines, each preceded by its documentation.
+            fn write_commented(&self, out: &mut String) {
+                $(
+                    $( let _ = writeln!(out, "#{}", $doc); )*
+                    let value = toml::Value::try_from(&self.$field)
+                        .map(|v| v.to_string())
+                        .unwrap_or_else(|e| format!("\"<unserialisable: {e}>\""));
+                    let _ = writeln!(out, "{} = {}\n", stringify!($field), value);
+                )*
+            }
+        }
+    };
+}
+
+/// Severity threshold for messages from the core.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum LogLevel {
+    /// Only errors.
+    Error,
+    /// Errors and warnings.
+    Warn,
+    /// Progress information (the default).
+    Info,
+    /// Per-stage details.
+    Debug,
+    /// Everything, including per-frame internals.
+    Trace,
+}
+
+impl LogLevel {
+    /// The level's name as written in TOML and accepted by `DHPTAM_LOG`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LogLevel::Error => "error",
+            LogLevel::Warn => "warn",
+            LogLevel::Info => "info",
+            LogLevel::Debug => "debug",
+            LogLevel::Trace => "trace",
+        }
+    }
+}
+
+config_section! {
+    /// Logging.
+    LogConfig {
+        /// Threshold for messages from dhptam: "error", "warn", "info", "debug" or "trace".
+        /// The environment variable DHPTAM_LOG, when set, takes precedence.
+        level: LogLevel = LogLevel::Info,
+    }
+}
+
+config_section! {
+    /// Stereo rectification of the frame-camera pair (and of the event-camera pair).
+    RectificationConfig {
+        /// How much of the source images the rectified view keeps, in [0, 1]: 0 crops to a
+        /// view where every pixel has a source pixel, 1 keeps every source pixel (with black
+        /// borders); OpenCV calls this alpha.
+        balance: f64 = 0.0,
+        /// Width of the rectified images in pixels; 0 uses the left camera's width.
+        width: u32 = 0,
+        /// Height of the rectified images in pixels; 0 uses the left camera's height.
+        height: u32 = 0,
+    }
+}
+
+config_section! {
+    /// Triangulation of stereo and multi-view correspondences.
+    TriangulationConfig {
+        /// Points closer than this to any observing camera are rejected, metres.
+        min_depth_m: f64 = 0.1,
+        /// Points farther than this from the first observing camera are rejected, metres.
+        max_depth_m: f64 = 40.0,
+        /// Minimum angle between the observing rays, degrees; smaller parallax gives depth too
+        /// uncertain to map.
+        min_parallax_deg: f64 = 0.5,
+        /// Maximum reprojection error after refinement in any view, pixels of the rectified
+        /// (pinhole) camera.
+        max_reprojection_px: f64 = 2.0,
+        /// Gauss–Newton iterations refining the linear (DLT) estimate.
+        refine_iterations: u32 = 5,
+    }
+}
+
+impl LogConfig {
+    fn validate(&self) -> Result<()> {
+        Ok(())
+    }
+}
+
+impl RectificationConfig {
+    fn validate(&self) -> Result<()> {
+        check(
+            "rectification.balance",
+            (0.0..=1.0).contains(&self.balance),
+            "a value in [0, 1]",
+            self.balance,
+        )?;
+        check(
+            "rectification.width/height",
+            (self.width == 0) == (self.height == 0),
+            "both 0 (use the left camera's size) or both positive",
+            format!("{}×{}", self.width, self.height),
+        )
+    }
+}
+
+impl TriangulationConfig {
+    fn validate(&self) -> Result<()> {
+        check("triangulation.min_depth_m", self.min_depth_m > 0.0, "a positive depth", self.min_depth_m)?;
+        check(
+            "triangulation.max_depth_m",
+            self.max_depth_m > self.min_depth_m,
+            "a depth above min_depth_m",
+            self.max_depth_m,
+        )?;
+        check(
+            "triangulation.min_parallax_deg",
+            (0.0..90.0).contains(&self.min_parallax_deg),
+            "an angle in [0, 90)",
+            self.min_parallax_deg,
+        )?;
+        check(
+            "triangulation.max_reprojection_px",
+            self.max_reprojection_px > 0.0,
+            "a positive error",
+            self.max_reprojection_px,
+        )
+    }
+}
+
+fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> {
+    if ok {
+        Ok(())
+    } else {
+        Err(Error::Config { source_name: String::new(), message: format!("{key}: expected {expected}, got {}", got.to_string()) })
+    }
+}
+
+/// The whole configuration, one table per stage.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    /// `[log]`
+    pub log: LogConfig,
+    /// `[rectification]`
+    pub rectification: RectificationConfig,
+    /// `[triangulation]`
+    pub triangulation: TriangulationConfig,
+}
+
+impl Config {
+    /// Parses TOML; keys left out keep their defaults. `source_name` (a path or `"<string>"`)
+    /// names the origin in errors.
+    pub fn from_toml_str(text: &str, source_name: &str) -> Result<Self> {
+        let config: Config = toml::from_str(text).map_err(|e| Error::Config {
+            source_name: source_name.to_owned(),
+            message: e.to_string().trim_end().to_owned(),
+        })?;
+        config.validate().map_err(|e| match e {
+            Error::Config { message, .. } => Error::Config { source_name: source_name.to_owned(), message },
+            other => other,
+        })?;
+        Ok(config)
+    }
+
+    /// Reads and parses a TOML file.
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io { action: "read", path: path.to_owned(), source })?;
+        Self::from_toml_str(&text, &path.display().to_string())
+    }
+
+    /// Checks every value against its documented range.
+    pub fn validate(&self) -> Result<()> {
+        self.log.validate()?;
+        self.rectification.validate()?;
+        self.triangulation.validate()
+    }
+
+    /// The configuration as plain TOML.
+    pub fn to_toml(&self) -> String {
+        // Serialising plain structs of numbers, strings and enums cannot fail.
+        toml::to_string(self).unwrap_or_default()
+    }
+
+    /// The configuration as TOML with every field's documentation as comments.
+    pub fn to_commented_toml(&self) -> String {
+        let mut out = String::from(
+            "# dhptam configuration. Every key is optional: a missing key keeps the value shown.\n\n",
+        );
+        let sections: [(&str, &dyn Fn(&mut String)); 3] = [
+            ("log", &|o| self.log.write_commented(o)),
+            ("rectification", &|o| self.rectification.write_commented(o)),
+            ("triangulation", &|o| self.triangulation.write_commented(o)),
+        ];
+        for (name, write) in sections {
+            let _ = writeln!(out, "[{name}]");
+            write(&mut out);
+        }
+        out.truncate(out.trim_end().len());
+        out.push('\n');
+        out
+    }
+
+    /// The default configuration, documented: what `dhptam config --defaults` prints.
+    pub fn defaults_toml() -> String {
+        Config::default().to_commented_toml()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_round_trip_through_commented_toml() {
+        let text = Config::defaults_toml();
+        assert!(text.contains("[triangulation]") && text.contains("# Minimum angle"));
+        assert_eq!(Config::from_toml_str(&text, "<defaults>").unwrap(), Config::default());
+    }
+
+    #[test]
+    fn partial_file_keeps_other_defaults() {
+        let c = Config::from_toml_str("[triangulation]\nmin_depth_m = 0.3\n", "<string>").unwrap();
+        assert_eq!(c.triangulation.min_depth_m, 0.3);
+        assert_eq!(c.rectification, RectificationConfig::default());
+    }
+
+    #[test]
+    fn unknown_key_is_named() {
+        let err = Config::from_toml_str("[triangulation]\nmin_dept_m = 0.3\n", "my.toml").unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("my.toml") && msg.contains("min_dept_m"), "{msg}");
+        let err = Config::from_toml_str("[tracker]\n", "my.toml").unwrap_err();
+        assert!(err.to_string().contains("tracker"), "{err}");
+    }
+
+    #[test]
+    fn out_of_range_value_is_named() {
+        let err = Config::from_toml_str("[rectification]\nbalance = 2.0\n", "x.toml").unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("x.toml") && msg.contains("rectification.balance") && msg.contains('2'), "{msg}");
+        let err = Config::from_toml_str("[log]\nlevel = \"loud\"\n", "x.toml").unwrap_err();
+        assert!(err.to_string().contains("loud"), "{err}");
+    }
+
+    #[test]
+    fn wrong_type_is_rejected() {
+        let err = Config::from_toml_str("[triangulation]\nmin_depth_m = \"near\"\n", "x.toml").unwrap_err();
+        assert!(err.to_string().contains("min_depth_m"), "{err}");
+    }
+}

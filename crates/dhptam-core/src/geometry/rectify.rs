@@ -1,0 +1,1 @@
+//! Stereo rectification (being written).

@@ -1,0 +1,1 @@
+//! Triangulation (being written).
