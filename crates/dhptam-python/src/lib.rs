@@ -1,3 +1,67 @@
+//! `dhptam._core`: the Python binding of `dhptam-core`.
+//!
+//! Thin wrappers only: each class holds the core type in `inner`, converts arrays at the
+//! boundary (reading float64 C-contiguous numpy arrays in place) and releases the GIL around
+//! work proportional to the input size. Core errors become `dhptam.errors` exceptions in
+//! `errors.rs`, and nowhere else.
+
+mod arrays;
+mod config;
+mod errors;
+mod geometry;
+
+use std::sync::{Mutex, OnceLock};
+
 use pyo3::prelude::*;
+
+static LOG_RESET: OnceLock<Mutex<pyo3_log::ResetHandle>> = OnceLock::new();
+
+/// Forgets the cached Python logger levels, so that a level set in Python after the first
+/// message from Rust takes effect (`dhptam.logs.configure` calls this).
+#[pyfunction]
+fn _reset_log_cache() {
+    if let Some(handle) = LOG_RESET.get() {
+        if let Ok(handle) = handle.lock() {
+            handle.reset();
+        }
+    }
+}
+
+/// Sends one message through the Rust `log` facade (for tests of the logging bridge).
+#[pyfunction]
+fn _log_from_rust(level: &str, message: &str) {
+    let level = match level {
+        "error" => log::Level::Error,
+        "warn" | "warning" => log::Level::Warn,
+        "debug" => log::Level::Debug,
+        "trace" => log::Level::Trace,
+        _ => log::Level::Info,
+    };
+    log::log!(target: "dhptam_core", level, "{message}");
+}
+
+/// Threads rayon uses for the core's parallel loops.
+#[pyfunction]
+fn thread_count() -> usize {
+    rayon::current_num_threads()
+}
+
 #[pymodule]
-fn _core(_m: &Bound<'_, PyModule>) -> PyResult<()> { Ok(()) }
+fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    // Route the core's `log` records to Python's `logging` (logger names follow the Rust
+    // module path, e.g. `dhptam_core.geometry.rectify`).
+    let handle = pyo3_log::Logger::new(m.py(), pyo3_log::Caching::LoggersAndLevels)?.install();
+    if let Ok(handle) = handle {
+        let _ = LOG_RESET.set(Mutex::new(handle));
+    }
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_class::<geometry::PySo3>()?;
+    m.add_class::<geometry::PySe3>()?;
+    m.add_class::<geometry::PyCamera>()?;
+    m.add_class::<config::PyConfig>()?;
+    m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
+    m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
+    m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
+    m.add_function(wrap_pyfunction!(thread_count, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,43 @@
+"""dhptam: stereo events+frames SLAM (DH-PTAM), with a Rust core.
+
+Quick look::
+
+    >>> import numpy as np, dhptam
+    >>> cam = dhptam.Camera("pinhole", [500.0, 500.0, 320.0, 240.0], 640, 480)
+    >>> cam.project(np.array([[0.0, 0.0, 2.0]]))
+    array([[320., 240.]])
+
+Modules: :mod:`dhptam.geometry` (Lie groups, cameras, rectification, triangulation),
+:mod:`dhptam.errors` (exceptions), :mod:`dhptam.logs` (logging), :mod:`dhptam.cli` (the
+``dhptam`` command).
+"""
+
+from __future__ import annotations
+
+from . import _core
+from ._core import Config
+from .errors import (
+    ConfigError,
+    DhptamError,
+    FileError,
+    InputError,
+    NumericalError,
+    ParseError,
+)
+from .geometry import SE3, SO3, Camera
+
+__version__: str = _core.__version__
+
+__all__ = [
+    "SE3",
+    "SO3",
+    "Camera",
+    "Config",
+    "ConfigError",
+    "DhptamError",
+    "FileError",
+    "InputError",
+    "NumericalError",
+    "ParseError",
+    "__version__",
+]
