@@ -1,0 +1,38 @@
+"""Shared test helpers.
+
+``shared_path`` is the one way tests reach the read-only reference material in ``../shared``
+(models, BAL and pose-graph problems, trajectories). It fails, never skips, when the folder
+is missing, so a broken checkout cannot pass by running fewer tests.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def shared_path(*parts: str) -> Path:
+    """Path of a file under the shared reference folder, which must exist.
+
+    The folder is ``$DHPTAM_SHARED`` when set, else ``shared/`` next to the repository.
+    """
+    root = Path(os.environ.get("DHPTAM_SHARED", REPO.parent / "shared"))
+    path = root.joinpath(*parts)
+    if not path.exists():
+        pytest.fail(
+            f"reference file {path} is missing: these tests need the read-only 'shared' folder "
+            f"next to the repository (or DHPTAM_SHARED pointing at it)",
+            pytrace=False,
+        )
+    return path
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A seeded generator, so failures reproduce."""
+    return np.random.default_rng(20261126)
