@@ -109,8 +109,15 @@ impl So3 {
                 format!("|RᵀR − I| = {orthogonality:.3e}, det = {det:.6}"),
             ));
         }
-        let rotation = Rotation3::from_matrix_eps(m, 1e-12, 100, Rotation3::identity());
-        Ok(Self { quaternion: UnitQuaternion::from_rotation_matrix(&rotation) })
+        // The quaternion read off the matrix is exact for an exact rotation; Müller's iteration
+        // started from it only has to remove the (≤ 1e-6) non-orthogonality, and can run to
+        // machine precision. (Started from the identity with a 1e-12 tolerance, it returned
+        // rotations off by ~1e-12 even for exact input.)
+        // nalgebra does not normalise a quaternion read off a non-orthonormal matrix.
+        let read = |r: &Rotation3<f64>| UnitQuaternion::new_normalize(*UnitQuaternion::from_rotation_matrix(r).quaternion());
+        let guess = read(&Rotation3::from_matrix_unchecked(*m)).to_rotation_matrix();
+        let rotation = Rotation3::from_matrix_eps(m, f64::EPSILON, 100, guess);
+        Ok(Self { quaternion: read(&rotation) })
     }
 
     /// The underlying unit quaternion.
