@@ -165,12 +165,43 @@ impl RadTan {
         );
         (Vector2::new(xd, yd), j)
     }
+
+    /// Whether the radial distortion `r ↦ r ρ(r²)` is increasing on `[0, r]`, i.e. whether
+    /// `r` lies before the fold where the model starts mapping farther rays back towards the
+    /// centre. Its derivative `g(s) = 1 + 3 k1 s + 5 k2 s² + 7 k3 s³` (s = r²) starts at 1, so
+    /// it is positive on [0, s] iff it is positive at s and at its interior stationary points,
+    /// the roots of `g'(s) = 3 k1 + 10 k2 s + 21 k3 s²`.
+    fn radially_monotonic(&self, r2: f64) -> bool {
+        let g = |s: f64| 1.0 + s * (3.0 * self.k1 + s * (5.0 * self.k2 + s * 7.0 * self.k3));
+        let at_r = g(r2);
+        if at_r.is_nan() || at_r <= 0.0 {
+            return false;
+        }
+        let (a, b, c) = (21.0 * self.k3, 10.0 * self.k2, 3.0 * self.k1);
+        let mut stationary = [f64::NAN; 2];
+        if a == 0.0 {
+            if b != 0.0 {
+                stationary[0] = -c / b;
+            }
+        } else {
+            let disc = b * b - 4.0 * a * c;
+            if disc >= 0.0 {
+                let sq = disc.sqrt();
+                stationary = [(-b - sq) / (2.0 * a), (-b + sq) / (2.0 * a)];
+            }
+        }
+        stationary.iter().all(|&s| !(s > 0.0 && s < r2) || g(s) > 0.0)
+    }
 }
 
 impl Projective for RadTan {
     fn project_with_jacobian(&self, p: &Vector3<f64>) -> Option<(Vector2<f64>, Matrix2x3<f64>)> {
         let (m, j_m) = perspective_divide(p)?;
         let (md, j_d) = self.distort(&m);
+        // Past the fold the pixel would belong to another, nearer-axis ray as well.
+        if !self.radially_monotonic(m.norm_squared()) || j_d.determinant() <= 0.0 {
+            return None;
+        }
         Some((self.pinhole.to_pixel(&md), self.pinhole.focal() * j_d * j_m))
     }
 
@@ -190,9 +221,13 @@ impl Projective for RadTan {
             }
         }
         let (md, j) = self.distort(&m);
-        // Reject non-converged solutions and points past the fold where the model stops being
-        // one-to-one (Jacobian no longer positive definite in orientation).
-        if (md - target).norm() > 1e-10 * (1.0 + target.norm()) || j.determinant() <= 0.0 {
+        // Reject non-converged solutions and solutions past the fold, where the model stops
+        // being one-to-one (see `radially_monotonic`; the determinant covers the tangential
+        // terms).
+        if (md - target).norm() > 1e-10 * (1.0 + target.norm())
+            || j.determinant() <= 0.0
+            || !self.radially_monotonic(m.norm_squared())
+        {
             return None;
         }
         Some(Vector3::new(m.x, m.y, 1.0).normalize())
