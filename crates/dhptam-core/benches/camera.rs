@@ -16,8 +16,20 @@ const POINTS: usize = 1_000_000;
 fn cameras() -> Vec<Camera> {
     vec![
         Camera::new("pinhole", &[460.0, 458.0, 319.5, 239.5], 640, 480).unwrap(),
-        Camera::new("radtan", &[460.0, 458.5, 318.2, 247.1, -0.28, 0.07, 1e-4, -2e-4, 0.0], 640, 480).unwrap(),
-        Camera::new("kb4", &[750.0, 749.2, 511.3, 506.8, 0.0037, 0.0143, -0.0285, 0.0143], 1024, 1024).unwrap(),
+        Camera::new(
+            "radtan",
+            &[460.0, 458.5, 318.2, 247.1, -0.28, 0.07, 1e-4, -2e-4, 0.0],
+            640,
+            480,
+        )
+        .unwrap(),
+        Camera::new(
+            "kb4",
+            &[750.0, 749.2, 511.3, 506.8, 0.0037, 0.0143, -0.0285, 0.0143],
+            1024,
+            1024,
+        )
+        .unwrap(),
     ]
 }
 
@@ -31,7 +43,9 @@ fn inputs(camera: &Camera) -> (Vec<f64>, Vec<f64>) {
         let (col, row) = (i % side, i / side);
         let u = w * col as f64 / (side - 1) as f64;
         let v = h * row as f64 / (side - 1) as f64;
-        let bearing = camera.unproject(&nalgebra::Vector2::new(u, v)).expect("grid pixel inside the model's range");
+        let bearing = camera
+            .unproject(&nalgebra::Vector2::new(u, v))
+            .expect("grid pixel inside the model's range");
         let depth = 0.5 + 19.5 * ((i * 7919) % 1000) as f64 / 1000.0;
         uv.extend([u, v]);
         xyz.extend((bearing * depth).iter());
@@ -41,18 +55,29 @@ fn inputs(camera: &Camera) -> (Vec<f64>, Vec<f64>) {
 
 fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group("camera_1M_points");
-    group.sample_size(10).warm_up_time(Duration::from_millis(500)).measurement_time(Duration::from_secs(3));
+    group
+        .sample_size(10)
+        .warm_up_time(Duration::from_millis(500))
+        .measurement_time(Duration::from_secs(3));
     group.throughput(Throughput::Elements(POINTS as u64));
     for camera in cameras() {
         let (uv, xyz) = inputs(&camera);
         let name = camera.model.name();
         let mut uv_out = vec![0.0; 2 * POINTS];
         group.bench_function(format!("project/{name}"), |b| {
-            b.iter(|| camera.project_points(black_box(&xyz), black_box(&mut uv_out)).unwrap())
+            b.iter(|| {
+                camera
+                    .project_points(black_box(&xyz), black_box(&mut uv_out))
+                    .unwrap()
+            })
         });
         let mut xyz_out = vec![0.0; 3 * POINTS];
         group.bench_function(format!("unproject/{name}"), |b| {
-            b.iter(|| camera.unproject_points(black_box(&uv), black_box(&mut xyz_out)).unwrap())
+            b.iter(|| {
+                camera
+                    .unproject_points(black_box(&uv), black_box(&mut xyz_out))
+                    .unwrap()
+            })
         });
     }
     group.finish();

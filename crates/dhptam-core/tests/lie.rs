@@ -17,7 +17,11 @@ fn rng(seed: u64) -> ChaCha8Rng {
 
 fn unit_vector(rng: &mut ChaCha8Rng) -> Vector3<f64> {
     loop {
-        let v = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0));
+        let v = Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        );
         let n = v.norm();
         if n > 0.1 && n <= 1.0 {
             return v / n;
@@ -81,7 +85,10 @@ fn assert_matrix_close<const R: usize, const C: usize>(
     what: &str,
 ) {
     let err = (a - b).amax();
-    assert!(err <= tol, "{what}: max |difference| = {err:e} > {tol:e}\n{a}\n{b}");
+    assert!(
+        err <= tol,
+        "{what}: max |difference| = {err:e} > {tol:e}\n{a}\n{b}"
+    );
 }
 
 #[test]
@@ -90,7 +97,10 @@ fn so3_log_of_exp_returns_the_rotation_vector() {
     for phi in rotation_vectors(&mut rng) {
         let back = So3::exp(&phi).log();
         let err = (back - phi).norm();
-        assert!(err <= 1e-12 + 1e-9 * phi.norm(), "phi = {phi:?}: log(exp(phi)) = {back:?}, error {err:e}");
+        assert!(
+            err <= 1e-12 + 1e-9 * phi.norm(),
+            "phi = {phi:?}: log(exp(phi)) = {back:?}, error {err:e}"
+        );
     }
 }
 
@@ -107,7 +117,12 @@ fn so3_exp_of_log_returns_the_rotation() {
     let r = So3::exp(&(axis * PI));
     let phi = r.log();
     assert!((phi.norm() - PI).abs() < 1e-12, "{phi:?}");
-    assert_matrix_close(&So3::exp(&phi).matrix(), &r.matrix(), 1e-12, "exp(log(R)) at π");
+    assert_matrix_close(
+        &So3::exp(&phi).matrix(),
+        &r.matrix(),
+        1e-12,
+        "exp(log(R)) at π",
+    );
 }
 
 #[test]
@@ -118,9 +133,17 @@ fn se3_log_exp_round_trips() {
         let back = Se3::exp(&xi).log();
         let err = (back - xi).norm();
         // Near π the translation part goes through J_l⁻¹, whose cot(θ/2) loses a few digits.
-        assert!(err <= 1e-9 * (1.0 + xi.norm()), "xi = {xi:?}: log(exp(xi)) = {back:?}, error {err:e}");
+        assert!(
+            err <= 1e-9 * (1.0 + xi.norm()),
+            "xi = {xi:?}: log(exp(xi)) = {back:?}, error {err:e}"
+        );
         let t = Se3::exp(&xi);
-        assert_matrix_close(&Se3::exp(&t.log()).matrix(), &t.matrix(), 1e-9, "exp(log(T))");
+        assert_matrix_close(
+            &Se3::exp(&t.log()).matrix(),
+            &t.matrix(),
+            1e-9,
+            "exp(log(T))",
+        );
     }
 }
 
@@ -146,8 +169,18 @@ fn so3_jacobians_match_finite_differences() {
         // exp(φ + δ) exp(φ)⁻¹ = exp(J_l δ) and exp(φ)⁻¹ exp(φ + δ) = exp(J_r δ).
         let left = central_difference(|d: &Vector3<f64>| (So3::exp(&(phi + d)) * r_inv).log());
         let right = central_difference(|d: &Vector3<f64>| (r_inv * So3::exp(&(phi + d))).log());
-        assert_matrix_close(&So3::left_jacobian(&phi), &left, 1e-8, &format!("SO3 J_l at |phi| = {}", phi.norm()));
-        assert_matrix_close(&So3::right_jacobian(&phi), &right, 1e-8, &format!("SO3 J_r at |phi| = {}", phi.norm()));
+        assert_matrix_close(
+            &So3::left_jacobian(&phi),
+            &left,
+            1e-8,
+            &format!("SO3 J_l at |phi| = {}", phi.norm()),
+        );
+        assert_matrix_close(
+            &So3::right_jacobian(&phi),
+            &right,
+            1e-8,
+            &format!("SO3 J_r at |phi| = {}", phi.norm()),
+        );
     }
 }
 
@@ -159,8 +192,18 @@ fn se3_jacobians_match_finite_differences() {
         let t_inv = Se3::exp(&xi).inverse();
         let left = central_difference(|d: &Vector6<f64>| (Se3::exp(&(xi + d)) * t_inv).log());
         let right = central_difference(|d: &Vector6<f64>| (t_inv * Se3::exp(&(xi + d))).log());
-        assert_matrix_close(&Se3::left_jacobian(&xi), &left, 1e-7, &format!("SE3 J_l at |phi| = {}", phi.norm()));
-        assert_matrix_close(&Se3::right_jacobian(&xi), &right, 1e-7, &format!("SE3 J_r at |phi| = {}", phi.norm()));
+        assert_matrix_close(
+            &Se3::left_jacobian(&xi),
+            &left,
+            1e-7,
+            &format!("SE3 J_l at |phi| = {}", phi.norm()),
+        );
+        assert_matrix_close(
+            &Se3::right_jacobian(&xi),
+            &right,
+            1e-7,
+            &format!("SE3 J_r at |phi| = {}", phi.norm()),
+        );
     }
 }
 
@@ -174,12 +217,32 @@ fn jacobian_inverses_invert_the_jacobians() {
     }
     for phi in vectors {
         let i3 = Matrix3::identity();
-        assert_matrix_close(&(So3::left_jacobian_inverse(&phi) * So3::left_jacobian(&phi)), &i3, 1e-12, "SO3 J_l⁻¹ J_l");
-        assert_matrix_close(&(So3::right_jacobian_inverse(&phi) * So3::right_jacobian(&phi)), &i3, 1e-12, "SO3 J_r⁻¹ J_r");
+        assert_matrix_close(
+            &(So3::left_jacobian_inverse(&phi) * So3::left_jacobian(&phi)),
+            &i3,
+            1e-12,
+            "SO3 J_l⁻¹ J_l",
+        );
+        assert_matrix_close(
+            &(So3::right_jacobian_inverse(&phi) * So3::right_jacobian(&phi)),
+            &i3,
+            1e-12,
+            "SO3 J_r⁻¹ J_r",
+        );
         let xi = twist(random_translation(&mut rng), phi);
         let i6 = Matrix6::identity();
-        assert_matrix_close(&(Se3::left_jacobian_inverse(&xi) * Se3::left_jacobian(&xi)), &i6, 1e-11, "SE3 J_l⁻¹ J_l");
-        assert_matrix_close(&(Se3::right_jacobian_inverse(&xi) * Se3::right_jacobian(&xi)), &i6, 1e-11, "SE3 J_r⁻¹ J_r");
+        assert_matrix_close(
+            &(Se3::left_jacobian_inverse(&xi) * Se3::left_jacobian(&xi)),
+            &i6,
+            1e-11,
+            "SE3 J_l⁻¹ J_l",
+        );
+        assert_matrix_close(
+            &(Se3::right_jacobian_inverse(&xi) * Se3::right_jacobian(&xi)),
+            &i6,
+            1e-11,
+            "SE3 J_r⁻¹ J_r",
+        );
     }
 }
 
@@ -189,12 +252,22 @@ fn adjoint_moves_tangent_vectors_through_the_group() {
     for phi in jacobian_vectors(&mut rng) {
         let r = random_rotation(&mut rng);
         let lhs = r * So3::exp(&phi) * r.inverse();
-        assert_matrix_close(&lhs.matrix(), &So3::exp(&(r.adjoint() * phi)).matrix(), 1e-12, "SO3 adjoint");
+        assert_matrix_close(
+            &lhs.matrix(),
+            &So3::exp(&(r.adjoint() * phi)).matrix(),
+            1e-12,
+            "SO3 adjoint",
+        );
 
         let t = random_pose(&mut rng);
         let xi = twist(random_translation(&mut rng), phi);
         let lhs = t * Se3::exp(&xi) * t.inverse();
-        assert_matrix_close(&lhs.matrix(), &Se3::exp(&(t.adjoint() * xi)).matrix(), 1e-11, "SE3 adjoint");
+        assert_matrix_close(
+            &lhs.matrix(),
+            &Se3::exp(&(t.adjoint() * xi)).matrix(),
+            1e-11,
+            "SE3 adjoint",
+        );
     }
 }
 
@@ -203,20 +276,56 @@ fn interpolation_hits_the_endpoints_and_halves_the_way() {
     let mut rng = rng(8);
     for _ in 0..SAMPLES {
         let (a, b) = (random_rotation(&mut rng), random_rotation(&mut rng));
-        assert_matrix_close(&a.interpolate(&b, 0.0).matrix(), &a.matrix(), 1e-12, "SO3 interpolate at 0");
-        assert_matrix_close(&a.interpolate(&b, 1.0).matrix(), &b.matrix(), 1e-12, "SO3 interpolate at 1");
+        assert_matrix_close(
+            &a.interpolate(&b, 0.0).matrix(),
+            &a.matrix(),
+            1e-12,
+            "SO3 interpolate at 0",
+        );
+        assert_matrix_close(
+            &a.interpolate(&b, 1.0).matrix(),
+            &b.matrix(),
+            1e-12,
+            "SO3 interpolate at 1",
+        );
         // a⁻¹ m = exp(ξ/2), so (a⁻¹ m)² = a⁻¹ b.
         let half = a.inverse() * a.interpolate(&b, 0.5);
-        assert_matrix_close(&(half * half).matrix(), &(a.inverse() * b).matrix(), 1e-12, "SO3 midpoint squared");
+        assert_matrix_close(
+            &(half * half).matrix(),
+            &(a.inverse() * b).matrix(),
+            1e-12,
+            "SO3 midpoint squared",
+        );
 
         let (a, b) = (random_pose(&mut rng), random_pose(&mut rng));
-        assert_matrix_close(&a.interpolate(&b, 0.0).matrix(), &a.matrix(), 1e-12, "SE3 interpolate at 0");
-        assert_matrix_close(&a.interpolate(&b, 1.0).matrix(), &b.matrix(), 1e-11, "SE3 interpolate at 1");
+        assert_matrix_close(
+            &a.interpolate(&b, 0.0).matrix(),
+            &a.matrix(),
+            1e-12,
+            "SE3 interpolate at 0",
+        );
+        assert_matrix_close(
+            &a.interpolate(&b, 1.0).matrix(),
+            &b.matrix(),
+            1e-11,
+            "SE3 interpolate at 1",
+        );
         let m = a.interpolate(&b, 0.5);
         let half = a.inverse() * m;
-        assert_matrix_close(&(half * half).matrix(), &(a.inverse() * b).matrix(), 1e-11, "SE3 midpoint squared");
-        let (d1, d2) = ((a.inverse() * m).log().norm(), (m.inverse() * b).log().norm());
-        assert!((d1 - d2).abs() < 1e-10, "SE3 midpoint distances {d1} and {d2}");
+        assert_matrix_close(
+            &(half * half).matrix(),
+            &(a.inverse() * b).matrix(),
+            1e-11,
+            "SE3 midpoint squared",
+        );
+        let (d1, d2) = (
+            (a.inverse() * m).log().norm(),
+            (m.inverse() * b).log().norm(),
+        );
+        assert!(
+            (d1 - d2).abs() < 1e-10,
+            "SE3 midpoint distances {d1} and {d2}"
+        );
     }
 }
 
@@ -228,10 +337,25 @@ fn inverses_undo_the_transform() {
         let p = random_translation(&mut rng);
         let back = t.inverse().transform_point(&t.transform_point(&p));
         assert!((back - p).norm() < 1e-12, "{back:?} vs {p:?}");
-        assert_matrix_close(&(t * t.inverse()).matrix(), &Matrix4::identity(), 1e-12, "T T⁻¹");
-        assert_matrix_close(&t.inverse().matrix(), &t.matrix().try_inverse().unwrap(), 1e-12, "T⁻¹ vs matrix inverse");
+        assert_matrix_close(
+            &(t * t.inverse()).matrix(),
+            &Matrix4::identity(),
+            1e-12,
+            "T T⁻¹",
+        );
+        assert_matrix_close(
+            &t.inverse().matrix(),
+            &t.matrix().try_inverse().unwrap(),
+            1e-12,
+            "T⁻¹ vs matrix inverse",
+        );
         let r = t.rotation;
-        assert_matrix_close(&(r * r.inverse()).matrix(), &Matrix3::identity(), 1e-12, "R R⁻¹");
+        assert_matrix_close(
+            &(r * r.inverse()).matrix(),
+            &Matrix3::identity(),
+            1e-12,
+            "R R⁻¹",
+        );
     }
 }
 
@@ -251,18 +375,28 @@ fn quaternion_xyzw_round_trips_and_rejects_bad_input() {
         let r = So3::from_quaternion_xyzw(scaled).unwrap();
         let back = r.to_quaternion_xyzw();
         for k in 0..4 {
-            assert!((back[k] - expected[k]).abs() < 1e-14, "{back:?} vs {expected:?}");
+            assert!(
+                (back[k] - expected[k]).abs() < 1e-14,
+                "{back:?} vs {expected:?}"
+            );
         }
         let t = Se3::from_translation_quaternion_xyzw([1.0, 2.0, 3.0], q).unwrap();
         assert_matrix_close(&t.rotation.matrix(), &r.matrix(), 1e-14, "pose rotation");
     }
     // x = (1, 0, 0, 0) is a rotation by π about x: the scalar-last order is honoured.
     let r = So3::from_quaternion_xyzw([1.0, 0.0, 0.0, 0.0]).unwrap();
-    assert_matrix_close(&r.matrix(), &Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0)), 1e-15, "q = x");
+    assert_matrix_close(
+        &r.matrix(),
+        &Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0)),
+        1e-15,
+        "q = x",
+    );
     assert!(So3::from_quaternion_xyzw([0.0; 4]).is_err());
     assert!(So3::from_quaternion_xyzw([0.0, f64::NAN, 0.0, 1.0]).is_err());
     assert!(So3::from_quaternion_xyzw([0.0, 0.0, f64::INFINITY, 1.0]).is_err());
-    assert!(Se3::from_translation_quaternion_xyzw([f64::NAN, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]).is_err());
+    assert!(
+        Se3::from_translation_quaternion_xyzw([f64::NAN, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]).is_err()
+    );
 }
 
 #[test]
@@ -271,7 +405,12 @@ fn from_matrix_round_trips_and_rejects_non_rotations() {
     for phi in rotation_vectors(&mut rng) {
         let r = So3::exp(&phi);
         let back = So3::from_matrix(&r.matrix()).unwrap();
-        assert_matrix_close(&back.matrix(), &r.matrix(), 1e-14, &format!("from_matrix at angle {}", phi.norm()));
+        assert_matrix_close(
+            &back.matrix(),
+            &r.matrix(),
+            1e-14,
+            &format!("from_matrix at angle {}", phi.norm()),
+        );
         let t = Se3::new(r, random_translation(&mut rng));
         let back = Se3::from_matrix(&t.matrix()).unwrap();
         assert_matrix_close(&back.matrix(), &t.matrix(), 1e-14, "SE3 from_matrix");
@@ -281,8 +420,18 @@ fn from_matrix_round_trips_and_rejects_non_rotations() {
         let r = random_rotation(&mut rng);
         let noise = Matrix3::from_fn(|_, _| rng.random_range(-1e-8..1e-8));
         let back = So3::from_matrix(&(r.matrix() + noise)).unwrap();
-        assert_matrix_close(&(back.matrix().transpose() * back.matrix()), &Matrix3::identity(), 1e-14, "orthonormalised");
-        assert_matrix_close(&back.matrix(), &r.matrix(), 1e-7, "orthonormalised close to input");
+        assert_matrix_close(
+            &(back.matrix().transpose() * back.matrix()),
+            &Matrix3::identity(),
+            1e-14,
+            "orthonormalised",
+        );
+        assert_matrix_close(
+            &back.matrix(),
+            &r.matrix(),
+            1e-7,
+            "orthonormalised close to input",
+        );
     }
     let m = So3::exp(&Vector3::new(0.3, -0.2, 0.1)).matrix();
     let err = So3::from_matrix(&(m * 1.01)).unwrap_err();
@@ -291,7 +440,10 @@ fn from_matrix_round_trips_and_rejects_non_rotations() {
     sheared[(0, 1)] += 1e-3;
     assert!(So3::from_matrix(&sheared).is_err());
     let reflection = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, -1.0));
-    assert!(So3::from_matrix(&reflection).is_err(), "a reflection has determinant −1");
+    assert!(
+        So3::from_matrix(&reflection).is_err(),
+        "a reflection has determinant −1"
+    );
     let mut with_nan = m;
     with_nan[(2, 2)] = f64::NAN;
     assert!(So3::from_matrix(&with_nan).is_err());

@@ -112,7 +112,7 @@ impl Pinhole {
     }
 
     /// Pixel of normalised coordinates.
-    fn to_pixel(&self, m: &Vector2<f64>) -> Vector2<f64> {
+    fn to_pixel(self, m: &Vector2<f64>) -> Vector2<f64> {
         Vector2::new(self.fx * m.x + self.cx, self.fy * m.y + self.cy)
     }
 
@@ -190,7 +190,9 @@ impl RadTan {
                 stationary = [(-b - sq) / (2.0 * a), (-b + sq) / (2.0 * a)];
             }
         }
-        stationary.iter().all(|&s| !(s > 0.0 && s < r2) || g(s) > 0.0)
+        stationary
+            .iter()
+            .all(|&s| !(s > 0.0 && s < r2) || g(s) > 0.0)
     }
 }
 
@@ -302,15 +304,18 @@ impl Projective for Kb4 {
         }
         let (f, df) = self.theta_d(theta);
         if !theta.is_finite()
-            || theta < 0.0
-            || theta >= std::f64::consts::PI
+            || !(0.0..std::f64::consts::PI).contains(&theta)
             || df <= 0.0
             || (f - theta_d).abs() > 1e-11 * (1.0 + theta_d)
         {
             return None;
         }
         let (sin_t, cos_t) = theta.sin_cos();
-        Some(Vector3::new(sin_t * m.x / theta_d, sin_t * m.y / theta_d, cos_t))
+        Some(Vector3::new(
+            sin_t * m.x / theta_d,
+            sin_t * m.y / theta_d,
+            cos_t,
+        ))
     }
 }
 
@@ -385,9 +390,18 @@ impl CameraModel {
             _ => params.len() == 8,
         };
         if !count_ok {
-            return Err(Error::invalid(format!("{name} parameters"), expected, format!("{} values", params.len())));
+            return Err(Error::invalid(
+                format!("{name} parameters"),
+                expected,
+                format!("{} values", params.len()),
+            ));
         }
-        let pinhole = Pinhole { fx: params[0], fy: params[1], cx: params[2], cy: params[3] };
+        let pinhole = Pinhole {
+            fx: params[0],
+            fy: params[1],
+            cx: params[2],
+            cy: params[3],
+        };
         if pinhole.fx <= 0.0 || pinhole.fy <= 0.0 {
             return Err(Error::invalid(
                 format!("{name} focal lengths"),
@@ -405,7 +419,10 @@ impl CameraModel {
                 p2: params[7],
                 k3: params.get(8).copied().unwrap_or(0.0),
             }),
-            _ => CameraModel::Kb4(Kb4 { pinhole, k: [params[4], params[5], params[6], params[7]] }),
+            _ => CameraModel::Kb4(Kb4 {
+                pinhole,
+                k: [params[4], params[5], params[6], params[7]],
+            }),
         })
     }
 }
@@ -427,28 +444,41 @@ impl Camera {
     /// A camera from a model name, parameters in OpenCV order and an image size.
     pub fn new(name: &str, params: &[f64], width: u32, height: u32) -> Result<Self> {
         if width == 0 || height == 0 {
-            return Err(Error::invalid("image size", "width > 0 and height > 0", format!("{width}×{height}")));
+            return Err(Error::invalid(
+                "image size",
+                "width > 0 and height > 0",
+                format!("{width}×{height}"),
+            ));
         }
-        Ok(Self { model: CameraModel::from_params(name, params)?, width, height })
+        Ok(Self {
+            model: CameraModel::from_params(name, params)?,
+            width,
+            height,
+        })
     }
 
     /// Whether a pixel lies inside the image, pixel centres at integers: u ∈ [−½, w − ½).
     pub fn contains(&self, uv: &Vector2<f64>) -> bool {
-        uv.x >= -0.5 && uv.y >= -0.5 && uv.x < self.width as f64 - 0.5 && uv.y < self.height as f64 - 0.5
+        uv.x >= -0.5
+            && uv.y >= -0.5
+            && uv.x < self.width as f64 - 0.5
+            && uv.y < self.height as f64 - 0.5
     }
 
     /// Projects `N` points stored as `xyz = [x0, y0, z0, x1, ...]` into `uv = [u0, v0, ...]`,
     /// writing NaN for points the model cannot image. Runs in parallel over chunks.
     pub fn project_points(&self, xyz: &[f64], uv: &mut [f64]) -> Result<()> {
         check_batch("points", xyz.len(), 3, "uv", uv.len(), 2)?;
-        xyz.par_chunks(3 * BATCH_CHUNK).zip(uv.par_chunks_mut(2 * BATCH_CHUNK)).for_each(|(src, dst)| {
-            for (p, out) in src.chunks_exact(3).zip(dst.chunks_exact_mut(2)) {
-                let pixel = self.model.project(&Vector3::new(p[0], p[1], p[2]));
-                let pixel = pixel.unwrap_or(Vector2::new(f64::NAN, f64::NAN));
-                out[0] = pixel.x;
-                out[1] = pixel.y;
-            }
-        });
+        xyz.par_chunks(3 * BATCH_CHUNK)
+            .zip(uv.par_chunks_mut(2 * BATCH_CHUNK))
+            .for_each(|(src, dst)| {
+                for (p, out) in src.chunks_exact(3).zip(dst.chunks_exact_mut(2)) {
+                    let pixel = self.model.project(&Vector3::new(p[0], p[1], p[2]));
+                    let pixel = pixel.unwrap_or(Vector2::new(f64::NAN, f64::NAN));
+                    out[0] = pixel.x;
+                    out[1] = pixel.y;
+                }
+            });
         Ok(())
     }
 
@@ -456,24 +486,41 @@ impl Camera {
     /// cannot invert the pixel. Runs in parallel over chunks.
     pub fn unproject_points(&self, uv: &[f64], xyz: &mut [f64]) -> Result<()> {
         check_batch("pixels", uv.len(), 2, "bearings", xyz.len(), 3)?;
-        uv.par_chunks(2 * BATCH_CHUNK).zip(xyz.par_chunks_mut(3 * BATCH_CHUNK)).for_each(|(src, dst)| {
-            for (q, out) in src.chunks_exact(2).zip(dst.chunks_exact_mut(3)) {
-                let bearing = self.model.unproject(&Vector2::new(q[0], q[1]));
-                let bearing = bearing.unwrap_or(Vector3::new(f64::NAN, f64::NAN, f64::NAN));
-                out.copy_from_slice(bearing.as_slice());
-            }
-        });
+        uv.par_chunks(2 * BATCH_CHUNK)
+            .zip(xyz.par_chunks_mut(3 * BATCH_CHUNK))
+            .for_each(|(src, dst)| {
+                for (q, out) in src.chunks_exact(2).zip(dst.chunks_exact_mut(3)) {
+                    let bearing = self.model.unproject(&Vector2::new(q[0], q[1]));
+                    let bearing = bearing.unwrap_or(Vector3::new(f64::NAN, f64::NAN, f64::NAN));
+                    out.copy_from_slice(bearing.as_slice());
+                }
+            });
         Ok(())
     }
 }
 
-fn check_batch(input: &str, in_len: usize, in_dim: usize, output: &str, out_len: usize, out_dim: usize) -> Result<()> {
+fn check_batch(
+    input: &str,
+    in_len: usize,
+    in_dim: usize,
+    output: &str,
+    out_len: usize,
+    out_dim: usize,
+) -> Result<()> {
     if in_len % in_dim != 0 {
-        return Err(Error::invalid(input, format!("a multiple of {in_dim} values"), format!("{in_len} values")));
+        return Err(Error::invalid(
+            input,
+            format!("a multiple of {in_dim} values"),
+            format!("{in_len} values"),
+        ));
     }
     let n = in_len / in_dim;
     if out_len != n * out_dim {
-        return Err(Error::invalid(output, format!("{} values for {n} {input}", n * out_dim), format!("{out_len} values")));
+        return Err(Error::invalid(
+            output,
+            format!("{} values for {n} {input}", n * out_dim),
+            format!("{out_len} values"),
+        ));
     }
     Ok(())
 }

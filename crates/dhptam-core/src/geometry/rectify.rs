@@ -102,7 +102,12 @@ struct Rect {
 impl Rect {
     fn lerp(&self, other: &Rect, s: f64) -> Rect {
         let mix = |a: f64, b: f64| a + (b - a) * s;
-        Rect { x0: mix(self.x0, other.x0), x1: mix(self.x1, other.x1), y0: mix(self.y0, other.y0), y1: mix(self.y1, other.y1) }
+        Rect {
+            x0: mix(self.x0, other.x0),
+            x1: mix(self.x1, other.x1),
+            y0: mix(self.y0, other.y0),
+            y1: mix(self.y1, other.y1),
+        }
     }
 }
 
@@ -131,8 +136,18 @@ fn footprint(name: &str, camera: &Camera, rect_from_cam: &So3) -> Result<(Rect, 
         let p = rect_from_cam * &camera.unproject(&Vector2::new(u, v))?;
         (p.z > MIN_RAY_COSINE * p.norm()).then(|| Vector2::new(p.x / p.z, p.y / p.z))
     };
-    let mut outer = Rect { x0: f64::INFINITY, x1: f64::NEG_INFINITY, y0: f64::INFINITY, y1: f64::NEG_INFINITY };
-    let mut inner = Rect { x0: f64::NEG_INFINITY, x1: f64::INFINITY, y0: f64::NEG_INFINITY, y1: f64::INFINITY };
+    let mut outer = Rect {
+        x0: f64::INFINITY,
+        x1: f64::NEG_INFINITY,
+        y0: f64::INFINITY,
+        y1: f64::NEG_INFINITY,
+    };
+    let mut inner = Rect {
+        x0: f64::NEG_INFINITY,
+        x1: f64::INFINITY,
+        y0: f64::NEG_INFINITY,
+        y1: f64::INFINITY,
+    };
     // Edge samples per edge that could be used; an edge with none leaves its bound unknown.
     let mut used = [0usize; 4];
     let mut include = |m: Vector2<f64>, edge: usize, inner: &mut Rect| {
@@ -187,9 +202,16 @@ impl RectifiedStereo {
         check_camera("right", &rig.right)?;
         let t = rig.right_from_left.translation;
         ensure_finite("right_from_left.translation", t.as_slice())?;
-        ensure_finite("right_from_left.rotation", &rig.right_from_left.rotation.to_quaternion_xyzw())?;
+        ensure_finite(
+            "right_from_left.rotation",
+            &rig.right_from_left.rotation.to_quaternion_xyzw(),
+        )?;
         if !(0.0..=1.0).contains(&config.balance) {
-            return Err(Error::invalid("rectification.balance", "a value in [0, 1]", config.balance));
+            return Err(Error::invalid(
+                "rectification.balance",
+                "a value in [0, 1]",
+                config.balance,
+            ));
         }
         let (width, height) = match (config.width, config.height) {
             (0, 0) => (rig.left.width, rig.left.height),
@@ -215,7 +237,7 @@ impl RectifiedStereo {
         let half_left = So3::exp(&(phi * 0.5));
         let half_right = So3::exp(&(phi * -0.5));
         // Right camera centre in the common (half-rotated) frame.
-        let centre = -(&half_right * &t);
+        let centre = -(half_right * t);
         let e1 = centre / baseline_m;
         let e2_raw = Vector3::z().cross(&e1);
         let e2_norm = e2_raw.norm();
@@ -231,7 +253,11 @@ impl RectifiedStereo {
         }
         let e2 = e2_raw / e2_norm;
         let e3 = e1.cross(&e2);
-        let rect_from_common = So3::from_matrix(&Matrix3::from_rows(&[e1.transpose(), e2.transpose(), e3.transpose()]))?;
+        let rect_from_common = So3::from_matrix(&Matrix3::from_rows(&[
+            e1.transpose(),
+            e2.transpose(),
+            e3.transpose(),
+        ]))?;
         let rect_left_from_left = rect_from_common * half_left;
         let rect_right_from_right = rect_from_common * half_right;
 
@@ -266,17 +292,35 @@ impl RectifiedStereo {
         let window = |r: &Rect, f: f64| {
             let (xc, yc) = (0.5 * (r.x0 + r.x1), 0.5 * (r.y0 + r.y1));
             let (hw, hh) = (0.5 * span_x / f, 0.5 * span_y / f);
-            Rect { x0: xc - hw, x1: xc + hw, y0: yc - hh, y1: yc + hh }
+            Rect {
+                x0: xc - hw,
+                x1: xc + hw,
+                y0: yc - hh,
+                y1: yc + hh,
+            }
         };
         // Largest window inside the common valid region, smallest window around everything.
         let f_inner = (span_x / (inner.x1 - inner.x0)).max(span_y / (inner.y1 - inner.y0));
         let f_outer = (span_x / (outer.x1 - outer.x0)).min(span_y / (outer.y1 - outer.y0));
         let chosen = window(&inner, f_inner).lerp(&window(&outer, f_outer), config.balance);
         let f = span_x / (chosen.x1 - chosen.x0);
-        let pinhole = Pinhole { fx: f, fy: f, cx: -f * chosen.x0, cy: -f * chosen.y0 };
-        ensure_finite("rectified intrinsics", &[pinhole.fx, pinhole.cx, pinhole.cy])?;
+        let pinhole = Pinhole {
+            fx: f,
+            fy: f,
+            cx: -f * chosen.x0,
+            cy: -f * chosen.y0,
+        };
+        ensure_finite(
+            "rectified intrinsics",
+            &[pinhole.fx, pinhole.cx, pinhole.cy],
+        )?;
 
-        let reference_fy = rig.left.model.pinhole().fy.min(rig.right.model.pinhole().fy);
+        let reference_fy = rig
+            .left
+            .model
+            .pinhole()
+            .fy
+            .min(rig.right.model.pinhole().fy);
         log::info!(
             "stereo rectification: K = [fx = fy = {:.3}, cx = {:.3}, cy = {:.3}] ({:.3}× the smaller source fy), {}×{} px, baseline {:.4} m, balance {}",
             pinhole.fx,
@@ -288,7 +332,16 @@ impl RectifiedStereo {
             baseline_m,
             config.balance
         );
-        Ok(Self { pinhole, width, height, rect_left_from_left, rect_right_from_right, baseline_m, left: rig.left, right: rig.right })
+        Ok(Self {
+            pinhole,
+            width,
+            height,
+            rect_left_from_left,
+            rect_right_from_right,
+            baseline_m,
+            left: rig.left,
+            right: rig.right,
+        })
     }
 
     /// The original (unrectified) camera of one side.
@@ -310,7 +363,8 @@ impl RectifiedStereo {
     /// The left projection matrix `K [I | 0]`, acting on points in the rectified left frame.
     pub fn projection_left(&self) -> Matrix3x4<f64> {
         let mut p = Matrix3x4::zeros();
-        p.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.pinhole.k_matrix());
+        p.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&self.pinhole.k_matrix());
         p
     }
 
@@ -329,21 +383,26 @@ impl RectifiedStereo {
 
     /// The rectified right pixel of a point in the rectified left frame (`None` behind it).
     pub fn project_right(&self, p_rect_left: &Vector3<f64>) -> Option<Vector2<f64>> {
-        self.pinhole.project(&(p_rect_left - Vector3::new(self.baseline_m, 0.0, 0.0)))
+        self.pinhole
+            .project(&(p_rect_left - Vector3::new(self.baseline_m, 0.0, 0.0)))
     }
 
     /// The rectified pixel of an original (distorted) pixel of `side`, or `None` when the
     /// model cannot unproject it or its ray points away from the rectified image plane.
     pub fn rectify_pixel(&self, side: Side, uv_distorted: &Vector2<f64>) -> Option<Vector2<f64>> {
         let ray = self.camera(side).unproject(uv_distorted)?;
-        self.pinhole.project(&(&self.rect_from_camera(side) * &ray))
+        self.pinhole.project(&(self.rect_from_camera(side) * ray))
     }
 
     /// The original (distorted) pixel seen by a rectified pixel of `side`, or `None` when the
     /// camera model cannot image that ray. The pixel may lie outside the source image.
     pub fn unrectify_pixel(&self, side: Side, uv_rect: &Vector2<f64>) -> Option<Vector2<f64>> {
-        let ray = Vector3::new((uv_rect.x - self.pinhole.cx) / self.pinhole.fx, (uv_rect.y - self.pinhole.cy) / self.pinhole.fy, 1.0);
-        let p = &self.rect_from_camera(side).inverse() * &ray;
+        let ray = Vector3::new(
+            (uv_rect.x - self.pinhole.cx) / self.pinhole.fx,
+            (uv_rect.y - self.pinhole.cy) / self.pinhole.fy,
+            1.0,
+        );
+        let p = self.rect_from_camera(side).inverse() * ray;
         self.camera(side).project(&p)
     }
 
@@ -361,18 +420,22 @@ impl RectifiedStereo {
         let cam_from_rect = self.rect_from_camera(side).inverse().matrix();
         let camera = self.camera(side);
         let Pinhole { fx, fy, cx, cy } = self.pinhole;
-        map_x.par_chunks_mut(w).zip(map_y.par_chunks_mut(w)).enumerate().for_each(|(row, (xs, ys))| {
-            let y = (row as f64 - cy) / fy;
-            for (col, (mx, my)) in xs.iter_mut().zip(ys.iter_mut()).enumerate() {
-                let ray = cam_from_rect * Vector3::new((col as f64 - cx) / fx, y, 1.0);
-                if let Some(uv) = camera.project(&ray) {
-                    if uv.x.is_finite() && uv.y.is_finite() {
-                        *mx = uv.x as f32;
-                        *my = uv.y as f32;
+        map_x
+            .par_chunks_mut(w)
+            .zip(map_y.par_chunks_mut(w))
+            .enumerate()
+            .for_each(|(row, (xs, ys))| {
+                let y = (row as f64 - cy) / fy;
+                for (col, (mx, my)) in xs.iter_mut().zip(ys.iter_mut()).enumerate() {
+                    let ray = cam_from_rect * Vector3::new((col as f64 - cx) / fx, y, 1.0);
+                    if let Some(uv) = camera.project(&ray) {
+                        if uv.x.is_finite() && uv.y.is_finite() {
+                            *mx = uv.x as f32;
+                            *my = uv.y as f32;
+                        }
                     }
                 }
-            }
-        });
+            });
         (map_x, map_y)
     }
 }
@@ -402,12 +465,27 @@ fn bilinear<T: Copy + Into<f32>>(src: &[T], w: usize, h: usize, x: f32, y: f32) 
 /// Output pixels per rayon task in the remap functions (a few image rows).
 const REMAP_CHUNK: usize = 4096;
 
-fn check_remap(src_len: usize, src_w: usize, src_h: usize, map_x: usize, map_y: usize, dst: usize) -> Result<()> {
+fn check_remap(
+    src_len: usize,
+    src_w: usize,
+    src_h: usize,
+    map_x: usize,
+    map_y: usize,
+    dst: usize,
+) -> Result<()> {
     if src_len != src_w * src_h {
-        return Err(Error::invalid("src", format!("{src_w}×{src_h} = {} pixels", src_w * src_h), format!("{src_len} pixels")));
+        return Err(Error::invalid(
+            "src",
+            format!("{src_w}×{src_h} = {} pixels", src_w * src_h),
+            format!("{src_len} pixels"),
+        ));
     }
     if map_x != dst || map_y != dst {
-        return Err(Error::invalid("map_x/map_y", format!("{dst} entries each (one per dst pixel)"), format!("{map_x} and {map_y}")));
+        return Err(Error::invalid(
+            "map_x/map_y",
+            format!("{dst} entries each (one per dst pixel)"),
+            format!("{map_x} and {map_y}"),
+        ));
     }
     Ok(())
 }
@@ -415,28 +493,44 @@ fn check_remap(src_len: usize, src_w: usize, src_h: usize, map_x: usize, map_y: 
 /// Resamples a grey image through remap tables with bilinear interpolation: `dst[i]` is `src`
 /// at `(map_x[i], map_y[i])`, rounded, with a black border (see [`RectifiedStereo::remap_tables`]).
 /// Runs in parallel over blocks of rows.
-pub fn remap_bilinear_u8(src: &[u8], src_w: usize, src_h: usize, map_x: &[f32], map_y: &[f32], dst: &mut [u8]) -> Result<()> {
+pub fn remap_bilinear_u8(
+    src: &[u8],
+    src_w: usize,
+    src_h: usize,
+    map_x: &[f32],
+    map_y: &[f32],
+    dst: &mut [u8],
+) -> Result<()> {
     check_remap(src.len(), src_w, src_h, map_x.len(), map_y.len(), dst.len())?;
-    dst.par_chunks_mut(REMAP_CHUNK).zip(map_x.par_chunks(REMAP_CHUNK)).zip(map_y.par_chunks(REMAP_CHUNK)).for_each(
-        |((out, xs), ys)| {
+    dst.par_chunks_mut(REMAP_CHUNK)
+        .zip(map_x.par_chunks(REMAP_CHUNK))
+        .zip(map_y.par_chunks(REMAP_CHUNK))
+        .for_each(|((out, xs), ys)| {
             for ((d, &x), &y) in out.iter_mut().zip(xs).zip(ys) {
                 // The value is within [0, 255] (a convex combination of u8 values and 0).
                 *d = (bilinear(src, src_w, src_h, x, y) + 0.5).min(255.0) as u8;
             }
-        },
-    );
+        });
     Ok(())
 }
 
 /// [`remap_bilinear_u8`] for `f32` images (no rounding; the border is 0.0).
-pub fn remap_bilinear_f32(src: &[f32], src_w: usize, src_h: usize, map_x: &[f32], map_y: &[f32], dst: &mut [f32]) -> Result<()> {
+pub fn remap_bilinear_f32(
+    src: &[f32],
+    src_w: usize,
+    src_h: usize,
+    map_x: &[f32],
+    map_y: &[f32],
+    dst: &mut [f32],
+) -> Result<()> {
     check_remap(src.len(), src_w, src_h, map_x.len(), map_y.len(), dst.len())?;
-    dst.par_chunks_mut(REMAP_CHUNK).zip(map_x.par_chunks(REMAP_CHUNK)).zip(map_y.par_chunks(REMAP_CHUNK)).for_each(
-        |((out, xs), ys)| {
+    dst.par_chunks_mut(REMAP_CHUNK)
+        .zip(map_x.par_chunks(REMAP_CHUNK))
+        .zip(map_y.par_chunks(REMAP_CHUNK))
+        .for_each(|((out, xs), ys)| {
             for ((d, &x), &y) in out.iter_mut().zip(xs).zip(ys) {
                 *d = bilinear(src, src_w, src_h, x, y);
             }
-        },
-    );
+        });
     Ok(())
 }

@@ -56,7 +56,9 @@ pub enum Rejected {
         view: usize,
     },
     /// The point is closer than `min_depth_m` to a camera.
-    #[error("the point is {depth_m:.3} m in front of camera {view}, closer than the minimum depth")]
+    #[error(
+        "the point is {depth_m:.3} m in front of camera {view}, closer than the minimum depth"
+    )]
     TooClose {
         /// Index of the first such view.
         view: usize,
@@ -89,14 +91,24 @@ pub enum Rejected {
 ///
 /// The world is moved to the first camera centre and scaled by the mean distance to the other
 /// centres before solving, so the result does not depend on the units or the world origin.
-pub fn triangulate_linear(cams_from_world: &[Se3], bearings: &[Vector3<f64>]) -> Option<Vector3<f64>> {
+pub fn triangulate_linear(
+    cams_from_world: &[Se3],
+    bearings: &[Vector3<f64>],
+) -> Option<Vector3<f64>> {
     let n = cams_from_world.len();
     if n < 2 || bearings.len() != n {
         return None;
     }
-    let centres: Vec<Vector3<f64>> = cams_from_world.iter().map(|c| c.inverse().translation).collect();
+    let centres: Vec<Vector3<f64>> = cams_from_world
+        .iter()
+        .map(|c| c.inverse().translation)
+        .collect();
     let origin = centres[0];
-    let scale = centres[1..].iter().map(|c| (c - origin).norm()).sum::<f64>() / (n - 1) as f64;
+    let scale = centres[1..]
+        .iter()
+        .map(|c| (c - origin).norm())
+        .sum::<f64>()
+        / (n - 1) as f64;
     if !(scale.is_finite() && scale > 0.0) {
         return None;
     }
@@ -115,7 +127,12 @@ pub fn triangulate_linear(cams_from_world: &[Se3], bearings: &[Vector3<f64>]) ->
     }
     let svd = a.svd(false, true);
     let v_t = svd.v_t?;
-    let smallest = svd.singular_values.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?.0;
+    let smallest = svd
+        .singular_values
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(b.1))?
+        .0;
     let h = v_t.row(smallest);
     let y = Vector3::new(h[0], h[1], h[2]);
     if h[3].abs() <= 1e-12 * y.norm() {
@@ -127,15 +144,32 @@ pub fn triangulate_linear(cams_from_world: &[Se3], bearings: &[Vector3<f64>]) ->
 
 /// Sum of squared pixel residuals of `point` over the views, or `None` when a view cannot
 /// project it.
-fn reprojection_cost(cams_from_world: &[Se3], pixels: &[Vector2<f64>], pinhole: &Pinhole, point: &Vector3<f64>) -> Option<f64> {
-    cams_from_world.iter().zip(pixels).try_fold(0.0, |acc, (cam_from_world, uv)| {
-        Some(acc + (pinhole.project(&cam_from_world.transform_point(point))? - uv).norm_squared())
-    })
+fn reprojection_cost(
+    cams_from_world: &[Se3],
+    pixels: &[Vector2<f64>],
+    pinhole: &Pinhole,
+    point: &Vector3<f64>,
+) -> Option<f64> {
+    cams_from_world
+        .iter()
+        .zip(pixels)
+        .try_fold(0.0, |acc, (cam_from_world, uv)| {
+            Some(
+                acc + (pinhole.project(&cam_from_world.transform_point(point))? - uv)
+                    .norm_squared(),
+            )
+        })
 }
 
 /// Gauss–Newton on `Σ |π(R_i X + t_i) − uv_i|²` over X, with `∂r_i/∂X = J_π R_i`. A step is
 /// kept only if it lowers the cost, so refinement never makes the linear estimate worse.
-fn refine(cams_from_world: &[Se3], pixels: &[Vector2<f64>], pinhole: &Pinhole, mut point: Vector3<f64>, iterations: u32) -> Vector3<f64> {
+fn refine(
+    cams_from_world: &[Se3],
+    pixels: &[Vector2<f64>],
+    pinhole: &Pinhole,
+    mut point: Vector3<f64>,
+    iterations: u32,
+) -> Vector3<f64> {
     let Some(mut cost) = reprojection_cost(cams_from_world, pixels, pinhole, &point) else {
         return point;
     };
@@ -143,7 +177,9 @@ fn refine(cams_from_world: &[Se3], pixels: &[Vector2<f64>], pinhole: &Pinhole, m
         let mut h = Matrix3::zeros();
         let mut g = Vector3::zeros();
         for (cam_from_world, uv) in cams_from_world.iter().zip(pixels) {
-            let Some((projected, j_p)) = pinhole.project_with_jacobian(&cam_from_world.transform_point(&point)) else {
+            let Some((projected, j_p)) =
+                pinhole.project_with_jacobian(&cam_from_world.transform_point(&point))
+            else {
                 return point;
             };
             let j = j_p * cam_from_world.rotation.matrix();
@@ -196,9 +232,14 @@ fn check(
             return Err(Rejected::BehindCamera { view });
         }
         if p_cam.z < config.min_depth_m {
-            return Err(Rejected::TooClose { view, depth_m: p_cam.z });
+            return Err(Rejected::TooClose {
+                view,
+                depth_m: p_cam.z,
+            });
         }
-        let projected = pinhole.project(&p_cam).ok_or(Rejected::BehindCamera { view })?;
+        let projected = pinhole
+            .project(&p_cam)
+            .ok_or(Rejected::BehindCamera { view })?;
         max_reprojection_px = max_reprojection_px.max((projected - uv).norm());
     }
     let depth_m = cams_from_world[0].transform_point(&point).z;
@@ -209,9 +250,15 @@ fn check(
         return Err(Rejected::LowParallax { deg: parallax_deg });
     }
     if max_reprojection_px > config.max_reprojection_px {
-        return Err(Rejected::ReprojectionError { px: max_reprojection_px });
+        return Err(Rejected::ReprojectionError {
+            px: max_reprojection_px,
+        });
     }
-    Ok(Triangulated { point_world: point, parallax_deg, max_reprojection_px })
+    Ok(Triangulated {
+        point_world: point,
+        parallax_deg,
+        max_reprojection_px,
+    })
 }
 
 /// Triangulates one point from pixels of rectified (pinhole) cameras: DLT, then
@@ -226,19 +273,54 @@ pub fn triangulate(
     config: &TriangulationConfig,
 ) -> Result<Triangulated, Rejected> {
     if cams_from_world.len() != pixels.len() {
-        return Err(Rejected::MismatchedViews { poses: cams_from_world.len(), observations: pixels.len() });
+        return Err(Rejected::MismatchedViews {
+            poses: cams_from_world.len(),
+            observations: pixels.len(),
+        });
     }
     if pixels.len() < 2 {
-        return Err(Rejected::TooFewViews { views: pixels.len() });
+        return Err(Rejected::TooFewViews {
+            views: pixels.len(),
+        });
     }
-    if !(pinhole.fx > 0.0 && pinhole.fy > 0.0) || pixels.iter().any(|uv| !(uv.x.is_finite() && uv.y.is_finite())) {
+    if !(pinhole.fx > 0.0 && pinhole.fy > 0.0)
+        || pixels
+            .iter()
+            .any(|uv| !(uv.x.is_finite() && uv.y.is_finite()))
+    {
         return Err(Rejected::Degenerate);
     }
-    let bearings: Vec<Vector3<f64>> = pixels.iter().map(|uv| Vector3::new((uv.x - pinhole.cx) / pinhole.fx, (uv.y - pinhole.cy) / pinhole.fy, 1.0)).collect();
+    let bearings: Vec<Vector3<f64>> = pixels
+        .iter()
+        .map(|uv| {
+            Vector3::new(
+                (uv.x - pinhole.cx) / pinhole.fx,
+                (uv.y - pinhole.cy) / pinhole.fy,
+                1.0,
+            )
+        })
+        .collect();
     let linear = triangulate_linear(cams_from_world, &bearings).ok_or(Rejected::Degenerate)?;
-    let point = refine(cams_from_world, pixels, pinhole, linear, config.refine_iterations);
-    let rays_world: Vec<Vector3<f64>> = cams_from_world.iter().zip(&bearings).map(|(c, f)| c.rotation.inverse() * *f).collect();
-    check(cams_from_world, pixels, pinhole, point, max_parallax_deg(&rays_world), config)
+    let point = refine(
+        cams_from_world,
+        pixels,
+        pinhole,
+        linear,
+        config.refine_iterations,
+    );
+    let rays_world: Vec<Vector3<f64>> = cams_from_world
+        .iter()
+        .zip(&bearings)
+        .map(|(c, f)| c.rotation.inverse() * *f)
+        .collect();
+    check(
+        cams_from_world,
+        pixels,
+        pinhole,
+        point,
+        max_parallax_deg(&rays_world),
+        config,
+    )
 }
 
 /// Triangulates a correspondence of a rectified stereo pair: left pixel `uv_left`, right pixel
@@ -253,20 +335,31 @@ pub fn triangulate_rectified(
     u_right: f64,
     config: &TriangulationConfig,
 ) -> Result<Triangulated, Rejected> {
-    let finite = [baseline_m, uv_left.x, uv_left.y, u_right].iter().all(|v| v.is_finite());
-    if !finite || !(baseline_m > 0.0 && pinhole.fx > 0.0 && pinhole.fy > 0.0) {
+    let finite = [baseline_m, uv_left.x, uv_left.y, u_right]
+        .iter()
+        .all(|v| v.is_finite());
+    if !(finite && baseline_m > 0.0 && pinhole.fx > 0.0 && pinhole.fy > 0.0) {
         return Err(Rejected::Degenerate);
     }
     let disparity = uv_left.x - u_right;
     if disparity == 0.0 {
-        return Err(Rejected::TooFar { depth_m: f64::INFINITY });
+        return Err(Rejected::TooFar {
+            depth_m: f64::INFINITY,
+        });
     }
     if disparity < 0.0 {
         return Err(Rejected::BehindCamera { view: 0 });
     }
     let depth = pinhole.fx * baseline_m / disparity;
-    let point = Vector3::new((uv_left.x - pinhole.cx) / pinhole.fx * depth, (uv_left.y - pinhole.cy) / pinhole.fy * depth, depth);
-    let right_from_left = Se3::new(super::so3::So3::identity(), Vector3::new(-baseline_m, 0.0, 0.0));
+    let point = Vector3::new(
+        (uv_left.x - pinhole.cx) / pinhole.fx * depth,
+        (uv_left.y - pinhole.cy) / pinhole.fy * depth,
+        depth,
+    );
+    let right_from_left = Se3::new(
+        super::so3::So3::identity(),
+        Vector3::new(-baseline_m, 0.0, 0.0),
+    );
     let views = [Se3::identity(), right_from_left];
     let pixels = [*uv_left, Vector2::new(u_right, uv_left.y)];
     // The two rays leave (0, 0, 0) and (b, 0, 0) and meet at the point.
