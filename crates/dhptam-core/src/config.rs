@@ -145,7 +145,12 @@ impl RectificationConfig {
 
 impl TriangulationConfig {
     fn validate(&self) -> Result<()> {
-        check("triangulation.min_depth_m", self.min_depth_m > 0.0, "a positive depth", self.min_depth_m)?;
+        check(
+            "triangulation.min_depth_m",
+            self.min_depth_m > 0.0,
+            "a positive depth",
+            self.min_depth_m,
+        )?;
         check(
             "triangulation.max_depth_m",
             self.max_depth_m > self.min_depth_m,
@@ -171,7 +176,10 @@ fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> 
     if ok {
         Ok(())
     } else {
-        Err(Error::Config { source_name: String::new(), message: format!("{key}: expected {expected}, got {}", got.to_string()) })
+        Err(Error::Config {
+            source_name: String::new(),
+            message: format!("{key}: expected {expected}, got {}", got.to_string()),
+        })
     }
 }
 
@@ -196,7 +204,10 @@ impl Config {
             message: e.to_string().trim_end().to_owned(),
         })?;
         config.validate().map_err(|e| match e {
-            Error::Config { message, .. } => Error::Config { source_name: source_name.to_owned(), message },
+            Error::Config { message, .. } => Error::Config {
+                source_name: source_name.to_owned(),
+                message,
+            },
             other => other,
         })?;
         Ok(config)
@@ -204,7 +215,11 @@ impl Config {
 
     /// Reads and parses a TOML file.
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Error::Io { action: "read", path: path.to_owned(), source })?;
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io {
+            action: "read",
+            path: path.to_owned(),
+            source,
+        })?;
         Self::from_toml_str(&text, &path.display().to_string())
     }
 
@@ -226,7 +241,8 @@ impl Config {
         let mut out = String::from(
             "# dhptam configuration. Every key is optional: a missing key keeps the value shown.\n\n",
         );
-        let sections: [(&str, &dyn Fn(&mut String)); 3] = [
+        type WriteSection<'a> = &'a dyn Fn(&mut String);
+        let sections: [(&str, WriteSection); 3] = [
             ("log", &|o| self.log.write_commented(o)),
             ("rectification", &|o| self.rectification.write_commented(o)),
             ("triangulation", &|o| self.triangulation.write_commented(o)),
@@ -254,7 +270,10 @@ mod tests {
     fn defaults_round_trip_through_commented_toml() {
         let text = Config::defaults_toml();
         assert!(text.contains("[triangulation]") && text.contains("# Minimum angle"));
-        assert_eq!(Config::from_toml_str(&text, "<defaults>").unwrap(), Config::default());
+        assert_eq!(
+            Config::from_toml_str(&text, "<defaults>").unwrap(),
+            Config::default()
+        );
     }
 
     #[test]
@@ -266,9 +285,13 @@ mod tests {
 
     #[test]
     fn unknown_key_is_named() {
-        let err = Config::from_toml_str("[triangulation]\nmin_dept_m = 0.3\n", "my.toml").unwrap_err();
+        let err =
+            Config::from_toml_str("[triangulation]\nmin_dept_m = 0.3\n", "my.toml").unwrap_err();
         let msg = err.to_string();
-        assert!(msg.contains("my.toml") && msg.contains("min_dept_m"), "{msg}");
+        assert!(
+            msg.contains("my.toml") && msg.contains("min_dept_m"),
+            "{msg}"
+        );
         let err = Config::from_toml_str("[tracker]\n", "my.toml").unwrap_err();
         assert!(err.to_string().contains("tracker"), "{err}");
     }
@@ -277,14 +300,18 @@ mod tests {
     fn out_of_range_value_is_named() {
         let err = Config::from_toml_str("[rectification]\nbalance = 2.0\n", "x.toml").unwrap_err();
         let msg = err.to_string();
-        assert!(msg.contains("x.toml") && msg.contains("rectification.balance") && msg.contains('2'), "{msg}");
+        assert!(
+            msg.contains("x.toml") && msg.contains("rectification.balance") && msg.contains('2'),
+            "{msg}"
+        );
         let err = Config::from_toml_str("[log]\nlevel = \"loud\"\n", "x.toml").unwrap_err();
         assert!(err.to_string().contains("loud"), "{err}");
     }
 
     #[test]
     fn wrong_type_is_rejected() {
-        let err = Config::from_toml_str("[triangulation]\nmin_depth_m = \"near\"\n", "x.toml").unwrap_err();
+        let err = Config::from_toml_str("[triangulation]\nmin_depth_m = \"near\"\n", "x.toml")
+            .unwrap_err();
         assert!(err.to_string().contains("min_depth_m"), "{err}");
     }
 }

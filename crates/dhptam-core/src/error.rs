@@ -68,13 +68,24 @@ pub enum Error {
 
 impl Error {
     /// Shorthand for [`Error::InvalidInput`].
-    pub fn invalid(what: impl Into<String>, expected: impl Into<String>, got: impl ToString) -> Self {
-        Error::InvalidInput { what: what.into(), expected: expected.into(), got: got.to_string() }
+    pub fn invalid(
+        what: impl Into<String>,
+        expected: impl Into<String>,
+        got: impl ToString,
+    ) -> Self {
+        Error::InvalidInput {
+            what: what.into(),
+            expected: expected.into(),
+            got: got.to_string(),
+        }
     }
 
     /// Shorthand for [`Error::Numerical`].
     pub fn numerical(operation: &'static str, reason: impl Into<String>) -> Self {
-        Error::Numerical { operation, reason: reason.into() }
+        Error::Numerical {
+            operation,
+            reason: reason.into(),
+        }
     }
 }
 

@@ -112,7 +112,7 @@ impl Pinhole {
     }
 
     /// Pixel of normalised coordinates.
-    fn to_pixel(&self, m: &Vector2<f64>) -> Vector2<f64> {
+    fn to_pixel(self, m: &Vector2<f64>) -> Vector2<f64> {
         Vector2::new(self.fx * m.x + self.cx, self.fy * m.y + self.cy)
     }
 
@@ -165,12 +165,45 @@ impl RadTan {
         );
         (Vector2::new(xd, yd), j)
     }
+
+    /// Whether the radial distortion `r ↦ r ρ(r²)` is increasing on `[0, r]`, i.e. whether
+    /// `r` lies before the fold where the model starts mapping farther rays back towards the
+    /// centre. Its derivative `g(s) = 1 + 3 k1 s + 5 k2 s² + 7 k3 s³` (s = r²) starts at 1, so
+    /// it is positive on [0, s] iff it is positive at s and at its interior stationary points,
+    /// the roots of `g'(s) = 3 k1 + 10 k2 s + 21 k3 s²`.
+    fn radially_monotonic(&self, r2: f64) -> bool {
+        let g = |s: f64| 1.0 + s * (3.0 * self.k1 + s * (5.0 * self.k2 + s * 7.0 * self.k3));
+        let at_r = g(r2);
+        if at_r.is_nan() || at_r <= 0.0 {
+            return false;
+        }
+        let (a, b, c) = (21.0 * self.k3, 10.0 * self.k2, 3.0 * self.k1);
+        let mut stationary = [f64::NAN; 2];
+        if a == 0.0 {
+            if b != 0.0 {
+                stationary[0] = -c / b;
+            }
+        } else {
+            let disc = b * b - 4.0 * a * c;
+            if disc >= 0.0 {
+                let sq = disc.sqrt();
+                stationary = [(-b - sq) / (2.0 * a), (-b + sq) / (2.0 * a)];
+            }
+        }
+        stationary
+            .iter()
+            .all(|&s| !(s > 0.0 && s < r2) || g(s) > 0.0)
+    }
 }
 
 impl Projective for RadTan {
     fn project_with_jacobian(&self, p: &Vector3<f64>) -> Option<(Vector2<f64>, Matrix2x3<f64>)> {
         let (m, j_m) = perspective_divide(p)?;
         let (md, j_d) = self.distort(&m);
+        // Past the fold the pixel would belong to another, nearer-axis ray as well.
+        if !self.radially_monotonic(m.norm_squared()) || j_d.determinant() <= 0.0 {
+            return None;
+        }
         Some((self.pinhole.to_pixel(&md), self.pinhole.focal() * j_d * j_m))
     }
 
@@ -190,9 +223,13 @@ impl Projective for RadTan {
             }
         }
         let (md, j) = self.distort(&m);
-        // Reject non-converged solutions and points past the fold where the model stops being
-        // one-to-one (Jacobian no longer positive definite in orientation).
-        if (md - target).norm() > 1e-10 * (1.0 + target.norm()) || j.determinant() <= 0.0 {
+        // Reject non-converged solutions and solutions past the fold, where the model stops
+        // being one-to-one (see `radially_monotonic`; the determinant covers the tangential
+        // terms).
+        if (md - target).norm() > 1e-10 * (1.0 + target.norm())
+            || j.determinant() <= 0.0
+            || !self.radially_monotonic(m.norm_squared())
+        {
             return None;
         }
         Some(Vector3::new(m.x, m.y, 1.0).normalize())
@@ -267,15 +304,18 @@ impl Projective for Kb4 {
         }
         let (f, df) = self.theta_d(theta);
         if !theta.is_finite()
-            || theta < 0.0
-            || theta >= std::f64::consts::PI
+            || !(0.0..std::f64::consts::PI).contains(&theta)
             || df <= 0.0
             || (f - theta_d).abs() > 1e-11 * (1.0 + theta_d)
         {
             return None;
         }
         let (sin_t, cos_t) = theta.sin_cos();
-        Some(Vector3::new(sin_t * m.x / theta_d, sin_t * m.y / theta_d, cos_t))
+        Some(Vector3::new(
+            sin_t * m.x / theta_d,
+            sin_t * m.y / theta_d,
+            cos_t,
+        ))
     }
 }
 
@@ -350,9 +390,18 @@ impl CameraModel {
             _ => params.len() == 8,
         };
         if !count_ok {
-            return Err(Error::invalid(format!("{name} parameters"), expected, format!("{} values", params.len())));
+            return Err(Error::invalid(
+                format!("{name} parameters"),
+                expected,
+                format!("{} values", params.len()),
+            ));
         }
-        let pinhole = Pinhole { fx: params[0], fy: params[1], cx: params[2], cy: params[3] };
+        let pinhole = Pinhole {
+            fx: params[0],
+            fy: params[1],
+            cx: params[2],
+            cy: params[3],
+        };
         if pinhole.fx <= 0.0 || pinhole.fy <= 0.0 {
             return Err(Error::invalid(
                 format!("{name} focal lengths"),
@@ -370,7 +419,10 @@ impl CameraModel {
                 p2: params[7],
                 k3: params.get(8).copied().unwrap_or(0.0),
             }),
-            _ => CameraModel::Kb4(Kb4 { pinhole, k: [params[4], params[5], params[6], params[7]] }),
+            _ => CameraModel::Kb4(Kb4 {
+                pinhole,
+                k: [params[4], params[5], params[6], params[7]],
+            }),
         })
     }
 }
@@ -392,28 +444,41 @@ impl Camera {
     /// A camera from a model name, parameters in OpenCV order and an image size.
     pub fn new(name: &str, params: &[f64], width: u32, height: u32) -> Result<Self> {
         if width == 0 || height == 0 {
-            return Err(Error::invalid("image size", "width > 0 and height > 0", format!("{width}×{height}")));
+            return Err(Error::invalid(
+                "image size",
+                "width > 0 and height > 0",
+                format!("{width}×{height}"),
+            ));
         }
-        Ok(Self { model: CameraModel::from_params(name, params)?, width, height })
+        Ok(Self {
+            model: CameraModel::from_params(name, params)?,
+            width,
+            height,
+        })
     }
 
     /// Whether a pixel lies inside the image, pixel centres at integers: u ∈ [−½, w − ½).
     pub fn contains(&self, uv: &Vector2<f64>) -> bool {
-        uv.x >= -0.5 && uv.y >= -0.5 && uv.x < self.width as f64 - 0.5 && uv.y < self.height as f64 - 0.5
+        uv.x >= -0.5
+            && uv.y >= -0.5
+            && uv.x < self.width as f64 - 0.5
+            && uv.y < self.height as f64 - 0.5
     }
 
     /// Projects `N` points stored as `xyz = [x0, y0, z0, x1, ...]` into `uv = [u0, v0, ...]`,
     /// writing NaN for points the model cannot image. Runs in parallel over chunks.
     pub fn project_points(&self, xyz: &[f64], uv: &mut [f64]) -> Result<()> {
         check_batch("points", xyz.len(), 3, "uv", uv.len(), 2)?;
-        xyz.par_chunks(3 * BATCH_CHUNK).zip(uv.par_chunks_mut(2 * BATCH_CHUNK)).for_each(|(src, dst)| {
-            for (p, out) in src.chunks_exact(3).zip(dst.chunks_exact_mut(2)) {
-                let pixel = self.model.project(&Vector3::new(p[0], p[1], p[2]));
-                let pixel = pixel.unwrap_or(Vector2::new(f64::NAN, f64::NAN));
-                out[0] = pixel.x;
-                out[1] = pixel.y;
-            }
-        });
+        xyz.par_chunks(3 * BATCH_CHUNK)
+            .zip(uv.par_chunks_mut(2 * BATCH_CHUNK))
+            .for_each(|(src, dst)| {
+                for (p, out) in src.chunks_exact(3).zip(dst.chunks_exact_mut(2)) {
+                    let pixel = self.model.project(&Vector3::new(p[0], p[1], p[2]));
+                    let pixel = pixel.unwrap_or(Vector2::new(f64::NAN, f64::NAN));
+                    out[0] = pixel.x;
+                    out[1] = pixel.y;
+                }
+            });
         Ok(())
     }
 
@@ -421,24 +486,41 @@ impl Camera {
     /// cannot invert the pixel. Runs in parallel over chunks.
     pub fn unproject_points(&self, uv: &[f64], xyz: &mut [f64]) -> Result<()> {
         check_batch("pixels", uv.len(), 2, "bearings", xyz.len(), 3)?;
-        uv.par_chunks(2 * BATCH_CHUNK).zip(xyz.par_chunks_mut(3 * BATCH_CHUNK)).for_each(|(src, dst)| {
-            for (q, out) in src.chunks_exact(2).zip(dst.chunks_exact_mut(3)) {
-                let bearing = self.model.unproject(&Vector2::new(q[0], q[1]));
-                let bearing = bearing.unwrap_or(Vector3::new(f64::NAN, f64::NAN, f64::NAN));
-                out.copy_from_slice(bearing.as_slice());
-            }
-        });
+        uv.par_chunks(2 * BATCH_CHUNK)
+            .zip(xyz.par_chunks_mut(3 * BATCH_CHUNK))
+            .for_each(|(src, dst)| {
+                for (q, out) in src.chunks_exact(2).zip(dst.chunks_exact_mut(3)) {
+                    let bearing = self.model.unproject(&Vector2::new(q[0], q[1]));
+                    let bearing = bearing.unwrap_or(Vector3::new(f64::NAN, f64::NAN, f64::NAN));
+                    out.copy_from_slice(bearing.as_slice());
+                }
+            });
         Ok(())
     }
 }
 
-fn check_batch(input: &str, in_len: usize, in_dim: usize, output: &str, out_len: usize, out_dim: usize) -> Result<()> {
+fn check_batch(
+    input: &str,
+    in_len: usize,
+    in_dim: usize,
+    output: &str,
+    out_len: usize,
+    out_dim: usize,
+) -> Result<()> {
     if in_len % in_dim != 0 {
-        return Err(Error::invalid(input, format!("a multiple of {in_dim} values"), format!("{in_len} values")));
+        return Err(Error::invalid(
+            input,
+            format!("a multiple of {in_dim} values"),
+            format!("{in_len} values"),
+        ));
     }
     let n = in_len / in_dim;
     if out_len != n * out_dim {
-        return Err(Error::invalid(output, format!("{} values for {n} {input}", n * out_dim), format!("{out_len} values")));
+        return Err(Error::invalid(
+            output,
+            format!("{} values for {n} {input}", n * out_dim),
+            format!("{out_len} values"),
+        ));
     }
     Ok(())
 }

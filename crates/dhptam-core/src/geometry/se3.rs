@@ -31,18 +31,27 @@ pub struct Se3 {
 impl Se3 {
     /// The identity transform.
     pub fn identity() -> Self {
-        Self { rotation: So3::identity(), translation: Vector3::zeros() }
+        Self {
+            rotation: So3::identity(),
+            translation: Vector3::zeros(),
+        }
     }
 
     /// From a rotation and a translation.
     pub fn new(rotation: So3, translation: Vector3<f64>) -> Self {
-        Self { rotation, translation }
+        Self {
+            rotation,
+            translation,
+        }
     }
 
     /// From translation (x, y, z) and a quaternion in (x, y, z, w) order — the TUM line layout.
     pub fn from_translation_quaternion_xyzw(t: [f64; 3], q_xyzw: [f64; 4]) -> Result<Self> {
         crate::error::ensure_finite("translation", &t)?;
-        Ok(Self { rotation: So3::from_quaternion_xyzw(q_xyzw)?, translation: Vector3::from(t) })
+        Ok(Self {
+            rotation: So3::from_quaternion_xyzw(q_xyzw)?,
+            translation: Vector3::from(t),
+        })
     }
 
     /// From a 4×4 homogeneous matrix whose last row is (0, 0, 0, 1).
@@ -57,13 +66,17 @@ impl Se3 {
             ));
         }
         let rotation = So3::from_matrix(&m.fixed_view::<3, 3>(0, 0).into_owned())?;
-        Ok(Self { rotation, translation: m.fixed_view::<3, 1>(0, 3).into_owned() })
+        Ok(Self {
+            rotation,
+            translation: m.fixed_view::<3, 1>(0, 3).into_owned(),
+        })
     }
 
     /// The 4×4 homogeneous matrix.
     pub fn matrix(&self) -> Matrix4<f64> {
         let mut m = Matrix4::identity();
-        m.fixed_view_mut::<3, 3>(0, 0).copy_from(&self.rotation.matrix());
+        m.fixed_view_mut::<3, 3>(0, 0)
+            .copy_from(&self.rotation.matrix());
         m.fixed_view_mut::<3, 1>(0, 3).copy_from(&self.translation);
         m
     }
@@ -72,7 +85,10 @@ impl Se3 {
     pub fn exp(xi: &Vector6<f64>) -> Self {
         let rho = xi.fixed_rows::<3>(0).into_owned();
         let phi = xi.fixed_rows::<3>(3).into_owned();
-        Self { rotation: So3::exp(&phi), translation: So3::left_jacobian(&phi) * rho }
+        Self {
+            rotation: So3::exp(&phi),
+            translation: So3::left_jacobian(&phi) * rho,
+        }
     }
 
     /// The logarithm ξ = [ρ; φ], rotation angle in [0, π].
@@ -88,7 +104,10 @@ impl Se3 {
     /// The inverse transform: `a_from_b.inverse() = b_from_a`.
     pub fn inverse(&self) -> Self {
         let r_inv = self.rotation.inverse();
-        Self { rotation: r_inv, translation: -(r_inv * self.translation) }
+        Self {
+            rotation: r_inv,
+            translation: -(r_inv * self.translation),
+        }
     }
 
     /// Applies the transform to a point.
@@ -101,7 +120,8 @@ impl Se3 {
         let r = self.rotation.matrix();
         let mut ad = Matrix6::zeros();
         ad.fixed_view_mut::<3, 3>(0, 0).copy_from(&r);
-        ad.fixed_view_mut::<3, 3>(0, 3).copy_from(&(hat(&self.translation) * r));
+        ad.fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&(hat(&self.translation) * r));
         ad.fixed_view_mut::<3, 3>(3, 3).copy_from(&r);
         ad
     }
@@ -118,7 +138,8 @@ impl Se3 {
         let jl = So3::left_jacobian(&phi);
         let mut j = Matrix6::zeros();
         j.fixed_view_mut::<3, 3>(0, 0).copy_from(&jl);
-        j.fixed_view_mut::<3, 3>(0, 3).copy_from(&q_matrix(&rho, &phi));
+        j.fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&q_matrix(&rho, &phi));
         j.fixed_view_mut::<3, 3>(3, 3).copy_from(&jl);
         j
     }
@@ -131,7 +152,8 @@ impl Se3 {
         let q = q_matrix(&rho, &phi);
         let mut j = Matrix6::zeros();
         j.fixed_view_mut::<3, 3>(0, 0).copy_from(&jl_inv);
-        j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-jl_inv * q * jl_inv));
+        j.fixed_view_mut::<3, 3>(0, 3)
+            .copy_from(&(-jl_inv * q * jl_inv));
         j.fixed_view_mut::<3, 3>(3, 3).copy_from(&jl_inv);
         j
     }
@@ -169,7 +191,11 @@ fn q_matrix(rho: &Vector3<f64>, phi: &Vector3<f64>) -> Matrix3<f64> {
         let t4 = theta_sq * theta_sq;
         let t5 = t4 * theta;
         let c2 = (1.0 - theta_sq / 2.0 - c) / t4;
-        ((theta - s) / t3, c2, 0.5 * (c2 - 3.0 * (theta - s - t3 / 6.0) / t5))
+        (
+            (theta - s) / t3,
+            c2,
+            0.5 * (c2 - 3.0 * (theta - s - t3 / 6.0) / t5),
+        )
     };
     let p = hat(phi);
     let r = hat(rho);
@@ -184,7 +210,7 @@ impl Mul for Se3 {
     fn mul(self, rhs: Se3) -> Se3 {
         Se3 {
             rotation: self.rotation * rhs.rotation,
-            translation: &self.rotation * &rhs.translation + self.translation,
+            translation: self.rotation * rhs.translation + self.translation,
         }
     }
 }

@@ -51,7 +51,11 @@ pub fn hat(v: &Vector3<f64>) -> Matrix3<f64> {
 
 /// Inverse of [`hat`]: the vector of a skew-symmetric matrix (its antisymmetric part).
 pub fn vee(m: &Matrix3<f64>) -> Vector3<f64> {
-    Vector3::new(m[(2, 1)] - m[(1, 2)], m[(0, 2)] - m[(2, 0)], m[(1, 0)] - m[(0, 1)]) * 0.5
+    Vector3::new(
+        m[(2, 1)] - m[(1, 2)],
+        m[(0, 2)] - m[(2, 0)],
+        m[(1, 0)] - m[(0, 1)],
+    ) * 0.5
 }
 
 /// A rotation. `a * b` composes (apply `b` first), `r * v` rotates a vector.
@@ -69,7 +73,9 @@ impl Default for So3 {
 impl So3 {
     /// The identity rotation.
     pub fn identity() -> Self {
-        Self { quaternion: UnitQuaternion::identity() }
+        Self {
+            quaternion: UnitQuaternion::identity(),
+        }
     }
 
     /// Wraps a nalgebra unit quaternion.
@@ -84,9 +90,15 @@ impl So3 {
         let quaternion = Quaternion::new(q[3], q[0], q[1], q[2]);
         let norm = quaternion.norm();
         if norm < 1e-12 {
-            return Err(Error::invalid("quaternion_xyzw", "a non-zero quaternion", format!("{q:?}")));
+            return Err(Error::invalid(
+                "quaternion_xyzw",
+                "a non-zero quaternion",
+                format!("{q:?}"),
+            ));
         }
-        Ok(Self { quaternion: UnitQuaternion::new_unchecked(quaternion / norm) })
+        Ok(Self {
+            quaternion: UnitQuaternion::new_unchecked(quaternion / norm),
+        })
     }
 
     /// The quaternion in (x, y, z, w) order with w ≥ 0.
@@ -109,8 +121,19 @@ impl So3 {
                 format!("|RᵀR − I| = {orthogonality:.3e}, det = {det:.6}"),
             ));
         }
-        let rotation = Rotation3::from_matrix_eps(m, 1e-12, 100, Rotation3::identity());
-        Ok(Self { quaternion: UnitQuaternion::from_rotation_matrix(&rotation) })
+        // The quaternion read off the matrix is exact for an exact rotation; Müller's iteration
+        // started from it only has to remove the (≤ 1e-6) non-orthogonality, and can run to
+        // machine precision. (Started from the identity with a 1e-12 tolerance, it returned
+        // rotations off by ~1e-12 even for exact input.)
+        // nalgebra does not normalise a quaternion read off a non-orthonormal matrix.
+        let read = |r: &Rotation3<f64>| {
+            UnitQuaternion::new_normalize(*UnitQuaternion::from_rotation_matrix(r).quaternion())
+        };
+        let guess = read(&Rotation3::from_matrix_unchecked(*m)).to_rotation_matrix();
+        let rotation = Rotation3::from_matrix_eps(m, f64::EPSILON, 100, guess);
+        Ok(Self {
+            quaternion: read(&rotation),
+        })
     }
 
     /// The underlying unit quaternion.
@@ -135,7 +158,9 @@ impl So3 {
             (half.cos(), half.sin() / theta)
         };
         let q = Quaternion::new(w, k * phi.x, k * phi.y, k * phi.z);
-        Self { quaternion: UnitQuaternion::new_normalize(q) }
+        Self {
+            quaternion: UnitQuaternion::new_normalize(q),
+        }
     }
 
     /// The logarithm: the rotation vector with angle in [0, π].
@@ -157,7 +182,9 @@ impl So3 {
 
     /// The inverse rotation.
     pub fn inverse(&self) -> Self {
-        Self { quaternion: self.quaternion.inverse() }
+        Self {
+            quaternion: self.quaternion.inverse(),
+        }
     }
 
     /// The adjoint `Ad(R) = R`: `R exp(φ) Rᵀ = exp(R φ)`.
@@ -181,9 +208,15 @@ impl So3 {
         let theta = theta_sq.sqrt();
         let phi_hat = hat(phi);
         let (a, b) = if theta < SERIES_ANGLE {
-            (alternating_series(theta_sq, 2), alternating_series(theta_sq, 3))
+            (
+                alternating_series(theta_sq, 2),
+                alternating_series(theta_sq, 3),
+            )
         } else {
-            ((1.0 - theta.cos()) / theta_sq, (theta - theta.sin()) / (theta_sq * theta))
+            (
+                (1.0 - theta.cos()) / theta_sq,
+                (theta - theta.sin()) / (theta_sq * theta),
+            )
         };
         Matrix3::identity() + phi_hat * a + phi_hat * phi_hat * b
     }
@@ -196,7 +229,8 @@ impl So3 {
         // 1/θ² − cot(θ/2)/(2θ) = 1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600 + O(θ⁸); the closed
         // form loses ~eps/θ² to cancellation, so the series is used below θ = 0.1.
         let c = if theta < 0.1 {
-            1.0 / 12.0 + theta_sq * (1.0 / 720.0 + theta_sq * (1.0 / 30240.0 + theta_sq / 1_209_600.0))
+            1.0 / 12.0
+                + theta_sq * (1.0 / 720.0 + theta_sq * (1.0 / 30240.0 + theta_sq / 1_209_600.0))
         } else {
             1.0 / theta_sq - (1.0 + theta.cos()) / (2.0 * theta * theta.sin())
         };
@@ -218,7 +252,11 @@ impl Mul for So3 {
     type Output = So3;
     fn mul(self, rhs: So3) -> So3 {
         // Renormalise so that long products do not drift off the unit sphere.
-        So3 { quaternion: UnitQuaternion::new_normalize(*(self.quaternion * rhs.quaternion).quaternion()) }
+        So3 {
+            quaternion: UnitQuaternion::new_normalize(
+                *(self.quaternion * rhs.quaternion).quaternion(),
+            ),
+        }
     }
 }
 
