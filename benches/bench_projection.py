@@ -29,7 +29,9 @@ def best_of(repeats: int, fn) -> float:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=None)
@@ -51,7 +53,9 @@ def main() -> None:
         "radtan": dhptam.Camera(
             "radtan", [458.7, 457.3, 367.2, 248.4, -0.2834, 0.0740, 1.9e-4, 1.8e-5, 0.0], 752, 480
         ),
-        "kb4": dhptam.Camera("kb4", [747.3, 747.2, 490.8, 506.3, 0.0037, 0.0181, -0.0302, 0.0173], 1024, 1024),
+        "kb4": dhptam.Camera(
+            "kb4", [747.3, 747.2, 490.8, 506.3, 0.0037, 0.0181, -0.0302, 0.0173], 1024, 1024
+        ),
     }
     print(
         f"# {args.points:,} points, best of {args.repeats}; dhptam {dhptam.__version__} "
@@ -61,46 +65,56 @@ def main() -> None:
     )
     print("| model | operation | dhptam [ms] | OpenCV [ms] | OpenCV / dhptam |")
     print("|---|---|---:|---:|---:|")
+    for name, camera in cameras.items():
+        for row in bench_model(name, camera, args.points, args.repeats, rng):
+            print(row)
+
+
+def bench_model(name, camera, n_points: int, repeats: int, rng) -> list[str]:
+    """Table rows comparing dhptam with OpenCV for one camera model."""
+    import cv2
+    import numpy as np
+
     zero = np.zeros(3)
     # OpenCV's default undistortion stops after 5 (radtan) or 10 (fisheye) iterations, which
     # leaves ~1e-3 errors in image corners; ask it for the accuracy dhptam delivers.
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-12)
-    for name, camera in cameras.items():
-        pixels = rng.uniform([0, 0], [camera.width - 1, camera.height - 1], size=(args.points, 2))
-        points = camera.unproject(pixels) * rng.uniform(0.5, 10.0, size=(args.points, 1))
-        K = camera.K
-        dist = np.array(camera.params[4:])
-        pts_cv = points.reshape(-1, 1, 3)
-        pix_cv = pixels.reshape(-1, 1, 2)
-        if name == "kb4":
+    pixels = rng.uniform([0, 0], [camera.width - 1, camera.height - 1], size=(n_points, 2))
+    points = camera.unproject(pixels) * rng.uniform(0.5, 10.0, size=(n_points, 1))
+    K = camera.K
+    dist = np.array(camera.params[4:])
+    pts_cv = points.reshape(-1, 1, 3)
+    pix_cv = pixels.reshape(-1, 1, 2)
+    if name == "kb4":
 
-            def cv_project():
-                return cv2.fisheye.projectPoints(pts_cv, zero, zero, K, dist)[0]
+        def cv_project():
+            return cv2.fisheye.projectPoints(pts_cv, zero, zero, K, dist)[0]
 
-            def cv_unproject():
-                return cv2.fisheye.undistortPoints(pix_cv, K, dist, criteria=criteria)
+        def cv_unproject():
+            return cv2.fisheye.undistortPoints(pix_cv, K, dist, criteria=criteria)
 
-        else:
+    else:
 
-            def cv_project():
-                return cv2.projectPoints(pts_cv, zero, zero, K, dist)[0]
+        def cv_project():
+            return cv2.projectPoints(pts_cv, zero, zero, K, dist)[0]
 
-            def cv_unproject():
-                return cv2.undistortPoints(pix_cv, K, dist, criteria=criteria)
+        def cv_unproject():
+            return cv2.undistortPoints(pix_cv, K, dist, criteria=criteria)
 
-        # Same answer first: a fast wrong answer is not a result.
-        np.testing.assert_allclose(camera.project(points), cv_project().reshape(-1, 2), atol=1e-6)
-        bearings = camera.unproject(pixels)
-        normalised = bearings[:, :2] / bearings[:, 2:]
-        np.testing.assert_allclose(normalised, cv_unproject().reshape(-1, 2), atol=1e-8)
+    # Same answer first: a fast wrong answer is not a result.
+    np.testing.assert_allclose(camera.project(points), cv_project().reshape(-1, 2), atol=1e-6)
+    bearings = camera.unproject(pixels)
+    np.testing.assert_allclose(bearings[:, :2] / bearings[:, 2:], cv_unproject().reshape(-1, 2), atol=1e-8)
 
-        for op, ours, theirs in (
-            ("project", lambda c=camera: c.project(points), cv_project),
-            ("unproject", lambda c=camera: c.unproject(pixels), cv_unproject),
-        ):
-            t_ours = best_of(args.repeats, ours)
-            t_cv = best_of(args.repeats, theirs)
-            print(f"| {name} | {op} | {t_ours * 1e3:.1f} | {t_cv * 1e3:.1f} | {t_cv / t_ours:.1f}× |")
+    rows = []
+    for op, ours, theirs in (
+        ("project", lambda: camera.project(points), cv_project),
+        ("unproject", lambda: camera.unproject(pixels), cv_unproject),
+    ):
+        t_ours = best_of(repeats, ours)
+        t_cv = best_of(repeats, theirs)
+        rows.append(f"| {name} | {op} | {t_ours * 1e3:.1f} | {t_cv * 1e3:.1f} | {t_cv / t_ours:.1f}× |")
+    return rows
 
 
 if __name__ == "__main__":

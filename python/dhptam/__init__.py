@@ -24,7 +24,7 @@ from .errors import (
     NumericalError,
     ParseError,
 )
-from .geometry import SE3, SO3, Camera
+from .geometry import SE3, SO3, Camera, RectifiedStereo, StereoRig, Triangulation, triangulate
 
 __version__: str = _core.__version__
 
@@ -39,5 +39,9 @@ __all__ = [
     "InputError",
     "NumericalError",
     "ParseError",
+    "RectifiedStereo",
+    "StereoRig",
+    "Triangulation",
     "__version__",
+    "triangulate",
 ]

@@ -15,34 +15,62 @@ fn ascontiguous<'py>(obj: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
     let py = obj.py();
     let kwargs = PyDict::new(py);
     kwargs.set_item("dtype", "float64")?;
-    py.import("numpy")?.getattr("ascontiguousarray")?.call((obj,), Some(&kwargs))
+    py.import("numpy")?
+        .getattr("ascontiguousarray")?
+        .call((obj,), Some(&kwargs))
 }
 
 /// An (N, cols) float64 array, read in place when it already is one.
-pub fn rows<'py>(obj: &Bound<'py, PyAny>, cols: usize, name: &str) -> PyResult<PyReadonlyArray2<'py, f64>> {
+pub fn rows<'py>(
+    obj: &Bound<'py, PyAny>,
+    cols: usize,
+    name: &str,
+) -> PyResult<PyReadonlyArray2<'py, f64>> {
     let array = match obj.extract::<PyReadonlyArray2<'py, f64>>() {
         Ok(a) if a.is_c_contiguous() => a,
         _ => {
-            let converted = ascontiguous(obj).map_err(|e| input_error(name, &format!("an (N, {cols}) array of numbers"), e))?;
+            let converted = ascontiguous(obj)
+                .map_err(|e| input_error(name, &format!("an (N, {cols}) array of numbers"), e))?;
             if converted.getattr("ndim")?.extract::<usize>()? == 1 && cols > 0 {
                 let len: usize = converted.getattr("size")?.extract()?;
                 if len == cols {
                     // A single point given as a flat vector: treat it as one row.
-                    return converted.call_method1("reshape", (1, cols))?.extract().map_err(Into::into);
+                    return converted
+                        .call_method1("reshape", (1, cols))?
+                        .extract()
+                        .map_err(Into::into);
                 }
             }
             converted
                 .extract::<PyReadonlyArray2<'py, f64>>()
-                .map_err(|_| input_error(name, &format!("an (N, {cols}) array"), shape_of(&converted)))?
+                .map_err(|_| {
+                    input_error(name, &format!("an (N, {cols}) array"), shape_of(&converted))
+                })?
         }
     };
     if array.shape()[1] != cols {
-        return Err(input_error(name, &format!("an (N, {cols}) array"), format!("shape {:?}", array.shape())));
+        return Err(input_error(
+            name,
+            &format!("an (N, {cols}) array"),
+            format!("shape {:?}", array.shape()),
+        ));
     }
     Ok(array)
 }
 
-/// A float64 vector of exactly `len` numbers.
+/// A float64 vector of any length, read in place when it already is a contiguous one.
+pub fn values<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArray1<'py, f64>> {
+    if let Ok(a) = obj.extract::<PyReadonlyArray1<'py, f64>>() {
+        if a.is_c_contiguous() {
+            return Ok(a);
+        }
+    }
+    ascontiguous(obj)
+        .and_then(|c| c.extract().map_err(Into::into))
+        .map_err(|_| input_error(name, "a 1-D array of numbers", shape_of(obj)))
+}
+
+/// A float64 vector of exactly `N` numbers.
 pub fn vector<const N: usize>(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<[f64; N]> {
     let converted = match obj.extract::<PyReadonlyArray1<'_, f64>>() {
         Ok(a) => a,
@@ -53,7 +81,11 @@ pub fn vector<const N: usize>(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<[f
     };
     let view = converted.as_array();
     if view.len() != N {
-        return Err(input_error(name, &format!("a vector of {N} numbers"), format!("{} numbers", view.len())));
+        return Err(input_error(
+            name,
+            &format!("a vector of {N} numbers"),
+            format!("{} numbers", view.len()),
+        ));
     }
     let mut out = [0.0; N];
     for (o, v) in out.iter_mut().zip(view.iter()) {
@@ -63,12 +95,21 @@ pub fn vector<const N: usize>(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<[f
 }
 
 /// A float64 (R, C) matrix.
-pub fn matrix<const R: usize, const C: usize>(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<nalgebra::SMatrix<f64, R, C>> {
-    let array = ascontiguous(obj).map_err(|_| input_error(name, &format!("a {R}×{C} matrix"), shape_of(obj)))?;
-    let array: PyReadonlyArray2<'_, f64> =
-        array.extract().map_err(|_| input_error(name, &format!("a {R}×{C} matrix"), shape_of(obj)))?;
+pub fn matrix<const R: usize, const C: usize>(
+    obj: &Bound<'_, PyAny>,
+    name: &str,
+) -> PyResult<nalgebra::SMatrix<f64, R, C>> {
+    let array = ascontiguous(obj)
+        .map_err(|_| input_error(name, &format!("a {R}×{C} matrix"), shape_of(obj)))?;
+    let array: PyReadonlyArray2<'_, f64> = array
+        .extract()
+        .map_err(|_| input_error(name, &format!("a {R}×{C} matrix"), shape_of(obj)))?;
     if array.shape() != [R, C] {
-        return Err(input_error(name, &format!("a {R}×{C} matrix"), format!("shape {:?}", array.shape())));
+        return Err(input_error(
+            name,
+            &format!("a {R}×{C} matrix"),
+            format!("shape {:?}", array.shape()),
+        ));
     }
     let view = array.as_array();
     Ok(nalgebra::SMatrix::<f64, R, C>::from_fn(|r, c| view[[r, c]]))
@@ -77,6 +118,10 @@ pub fn matrix<const R: usize, const C: usize>(obj: &Bound<'_, PyAny>, name: &str
 fn shape_of(obj: &Bound<'_, PyAny>) -> String {
     match obj.getattr("shape") {
         Ok(shape) => format!("shape {shape}"),
-        Err(_) => format!("{}", obj.get_type().name().map(|n| n.to_string()).unwrap_or_default()),
+        Err(_) => obj
+            .get_type()
+            .name()
+            .map(|n| n.to_string())
+            .unwrap_or_default(),
     }
 }

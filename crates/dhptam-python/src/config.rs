@@ -21,20 +21,26 @@ impl PyConfig {
     /// The defaults.
     #[new]
     fn new() -> Self {
-        Self { inner: Config::default() }
+        Self {
+            inner: Config::default(),
+        }
     }
 
     /// Parses TOML text; keys left out keep their defaults.
     #[staticmethod]
     #[pyo3(signature = (text, source_name="<string>"))]
     fn from_toml(text: &str, source_name: &str) -> PyResult<Self> {
-        Ok(Self { inner: Config::from_toml_str(text, source_name).py()? })
+        Ok(Self {
+            inner: Config::from_toml_str(text, source_name).py()?,
+        })
     }
 
     /// Reads a TOML file.
     #[staticmethod]
     fn from_file(path: PathBuf) -> PyResult<Self> {
-        Ok(Self { inner: Config::from_file(&path).py()? })
+        Ok(Self {
+            inner: Config::from_file(&path).py()?,
+        })
     }
 
     /// The default configuration as documented TOML.
@@ -55,8 +61,9 @@ impl PyConfig {
 
     /// This configuration as nested dictionaries.
     fn to_dict<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
-        let value = toml::Value::try_from(&self.inner)
-            .map_err(|e| pyo3::exceptions::PyRuntimeError::new_err(format!("config serialisation: {e}")))?;
+        let value = toml::Value::try_from(&self.inner).map_err(|e| {
+            pyo3::exceptions::PyRuntimeError::new_err(format!("config serialisation: {e}"))
+        })?;
         to_python(py, &value)
     }
 

@@ -15,7 +15,9 @@ pub fn to_py_err(error: Error) -> PyErr {
     Python::attach(|py| match build(py, &error) {
         Ok(err) => err,
         // The Python package is always importable next to `_core`; if not, still say what failed.
-        Err(import_failure) => PyRuntimeError::new_err(format!("{error} (and dhptam.errors failed: {import_failure})")),
+        Err(import_failure) => PyRuntimeError::new_err(format!(
+            "{error} (and dhptam.errors failed: {import_failure})"
+        )),
     })
 }
 
@@ -29,7 +31,12 @@ fn build(py: Python<'_>, error: &Error) -> PyResult<PyErr> {
     let (name, field, path, line) = match error {
         Error::InvalidInput { what, .. } => ("InputError", Some(what.clone()), None, None),
         Error::Config { source_name, .. } => ("ConfigError", None, Some(source_name.clone()), None),
-        Error::Parse { path, line, .. } => ("ParseError", None, Some(path.display().to_string()), Some(*line)),
+        Error::Parse { path, line, .. } => (
+            "ParseError",
+            None,
+            Some(path.display().to_string()),
+            Some(*line),
+        ),
         Error::Io { path, .. } => ("FileError", None, Some(path.display().to_string()), None),
         Error::Numerical { .. } => ("NumericalError", None, None, None),
     };

@@ -3,17 +3,23 @@
 use dhptam_core::geometry::{Camera, Projective, Se3, So3};
 use nalgebra::{Vector3, Vector6};
 use numpy::ndarray::{Array1, Array2, Array3};
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2,
+    PyUntypedArrayMethods,
+};
 use pyo3::prelude::*;
 
 use crate::arrays;
 use crate::errors::{input_error, IntoPyResult};
 
-fn vec3_to_py<'py>(py: Python<'py>, v: &Vector3<f64>) -> Bound<'py, PyArray1<f64>> {
+/// Pixels (N, 2) with their projection Jacobians (N, 2, 3).
+type PixelsAndJacobians<'py> = (Bound<'py, PyArray2<f64>>, Bound<'py, PyArray3<f64>>);
+
+pub(crate) fn vec3_to_py<'py>(py: Python<'py>, v: &Vector3<f64>) -> Bound<'py, PyArray1<f64>> {
     Array1::from_vec(v.as_slice().to_vec()).into_pyarray(py)
 }
 
-fn mat_to_py<'py, const R: usize, const C: usize>(
+pub(crate) fn mat_to_py<'py, const R: usize, const C: usize>(
     py: Python<'py>,
     m: &nalgebra::SMatrix<f64, R, C>,
 ) -> Bound<'py, PyArray2<f64>> {
@@ -31,14 +37,18 @@ fn map_points<'py>(
     let out = py.detach(|| {
         use rayon::prelude::*;
         let mut out = vec![0.0; src.len()];
-        out.par_chunks_mut(3 * 4096).zip(src.par_chunks(3 * 4096)).for_each(|(dst, src)| {
-            for (d, s) in dst.chunks_exact_mut(3).zip(src.chunks_exact(3)) {
-                d.copy_from_slice(f(Vector3::new(s[0], s[1], s[2])).as_slice());
-            }
-        });
+        out.par_chunks_mut(3 * 4096)
+            .zip(src.par_chunks(3 * 4096))
+            .for_each(|(dst, src)| {
+                for (d, s) in dst.chunks_exact_mut(3).zip(src.chunks_exact(3)) {
+                    d.copy_from_slice(f(Vector3::new(s[0], s[1], s[2])).as_slice());
+                }
+            });
         out
     });
-    Ok(Array2::from_shape_vec((n, 3), out).map_err(|e| input_error("points", "(N, 3)", e))?.into_pyarray(py))
+    Ok(Array2::from_shape_vec((n, 3), out)
+        .map_err(|e| input_error("points", "(N, 3)", e))?
+        .into_pyarray(py))
 }
 
 /// A 3-D rotation (unit quaternion inside).
@@ -73,13 +83,19 @@ impl PySo3 {
     /// Rotation from a quaternion in (x, y, z, w) order; it is normalised.
     #[staticmethod]
     fn from_quat_xyzw(q: &Bound<'_, PyAny>) -> PyResult<Self> {
-        Ok(So3::from_quaternion_xyzw(arrays::vector::<4>(q, "quat_xyzw")?).py()?.into())
+        Ok(
+            So3::from_quaternion_xyzw(arrays::vector::<4>(q, "quat_xyzw")?)
+                .py()?
+                .into(),
+        )
     }
 
     /// Rotation from an orthonormal 3×3 matrix with determinant +1.
     #[staticmethod]
     fn from_matrix(m: &Bound<'_, PyAny>) -> PyResult<Self> {
-        Ok(So3::from_matrix(&arrays::matrix::<3, 3>(m, "matrix")?).py()?.into())
+        Ok(So3::from_matrix(&arrays::matrix::<3, 3>(m, "matrix")?)
+            .py()?
+            .into())
     }
 
     /// The rotation vector, angle in [0, π].
@@ -119,26 +135,50 @@ impl PySo3 {
 
     /// Left Jacobian J_l(φ).
     #[staticmethod]
-    fn left_jacobian<'py>(py: Python<'py>, phi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &So3::left_jacobian(&Vector3::from(arrays::vector::<3>(phi, "phi")?))))
+    fn left_jacobian<'py>(
+        py: Python<'py>,
+        phi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &So3::left_jacobian(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
+        ))
     }
 
     /// Right Jacobian J_r(φ) = J_l(−φ).
     #[staticmethod]
-    fn right_jacobian<'py>(py: Python<'py>, phi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &So3::right_jacobian(&Vector3::from(arrays::vector::<3>(phi, "phi")?))))
+    fn right_jacobian<'py>(
+        py: Python<'py>,
+        phi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &So3::right_jacobian(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
+        ))
     }
 
     /// Inverse of the left Jacobian.
     #[staticmethod]
-    fn left_jacobian_inverse<'py>(py: Python<'py>, phi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &So3::left_jacobian_inverse(&Vector3::from(arrays::vector::<3>(phi, "phi")?))))
+    fn left_jacobian_inverse<'py>(
+        py: Python<'py>,
+        phi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &So3::left_jacobian_inverse(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
+        ))
     }
 
     /// Inverse of the right Jacobian.
     #[staticmethod]
-    fn right_jacobian_inverse<'py>(py: Python<'py>, phi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &So3::right_jacobian_inverse(&Vector3::from(arrays::vector::<3>(phi, "phi")?))))
+    fn right_jacobian_inverse<'py>(
+        py: Python<'py>,
+        phi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &So3::right_jacobian_inverse(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
+        ))
     }
 
     /// `R1 @ R2` composes; `R @ points` rotates an (N, 3) array (or one 3-vector).
@@ -146,12 +186,20 @@ impl PySo3 {
         if let Ok(other) = rhs.extract::<PyRef<'_, PySo3>>() {
             return Ok(Py::new(py, PySo3::from(self.inner * other.inner))?.into_any());
         }
-        let single = rhs.getattr("ndim").and_then(|d| d.extract::<usize>()).map(|d| d == 1).unwrap_or(false)
+        let single = rhs
+            .getattr("ndim")
+            .and_then(|d| d.extract::<usize>())
+            .map(|d| d == 1)
+            .unwrap_or(false)
             || rhs.extract::<Vec<f64>>().is_ok();
         let points = arrays::rows(rhs, 3, "points")?;
         let r = self.inner;
         let out = map_points(py, &points, move |p| r * p)?;
-        Ok(if single { out.reshape([3])?.into_any().unbind() } else { out.into_any().unbind() })
+        Ok(if single {
+            out.reshape([3])?.into_any().unbind()
+        } else {
+            out.into_any().unbind()
+        })
     }
 
     fn __repr__(&self) -> String {
@@ -199,12 +247,17 @@ impl PySe3 {
     /// From a 4×4 homogeneous matrix.
     #[staticmethod]
     fn from_matrix(m: &Bound<'_, PyAny>) -> PyResult<Self> {
-        Ok(Se3::from_matrix(&arrays::matrix::<4, 4>(m, "matrix")?).py()?.into())
+        Ok(Se3::from_matrix(&arrays::matrix::<4, 4>(m, "matrix")?)
+            .py()?
+            .into())
     }
 
     /// From a translation (x, y, z) and a quaternion in (x, y, z, w) order: the TUM line layout.
     #[staticmethod]
-    fn from_translation_quat_xyzw(translation: &Bound<'_, PyAny>, quat_xyzw: &Bound<'_, PyAny>) -> PyResult<Self> {
+    fn from_translation_quat_xyzw(
+        translation: &Bound<'_, PyAny>,
+        quat_xyzw: &Bound<'_, PyAny>,
+    ) -> PyResult<Self> {
         let t = arrays::vector::<3>(translation, "translation")?;
         let q = arrays::vector::<4>(quat_xyzw, "quat_xyzw")?;
         Ok(Se3::from_translation_quaternion_xyzw(t, q).py()?.into())
@@ -249,26 +302,50 @@ impl PySe3 {
 
     /// Left Jacobian J_l(ξ) (6×6).
     #[staticmethod]
-    fn left_jacobian<'py>(py: Python<'py>, xi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &Se3::left_jacobian(&Vector6::from(arrays::vector::<6>(xi, "xi")?))))
+    fn left_jacobian<'py>(
+        py: Python<'py>,
+        xi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &Se3::left_jacobian(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
+        ))
     }
 
     /// Right Jacobian J_r(ξ) = J_l(−ξ).
     #[staticmethod]
-    fn right_jacobian<'py>(py: Python<'py>, xi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &Se3::right_jacobian(&Vector6::from(arrays::vector::<6>(xi, "xi")?))))
+    fn right_jacobian<'py>(
+        py: Python<'py>,
+        xi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &Se3::right_jacobian(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
+        ))
     }
 
     /// Inverse of the left Jacobian.
     #[staticmethod]
-    fn left_jacobian_inverse<'py>(py: Python<'py>, xi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &Se3::left_jacobian_inverse(&Vector6::from(arrays::vector::<6>(xi, "xi")?))))
+    fn left_jacobian_inverse<'py>(
+        py: Python<'py>,
+        xi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &Se3::left_jacobian_inverse(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
+        ))
     }
 
     /// Inverse of the right Jacobian.
     #[staticmethod]
-    fn right_jacobian_inverse<'py>(py: Python<'py>, xi: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(py, &Se3::right_jacobian_inverse(&Vector6::from(arrays::vector::<6>(xi, "xi")?))))
+    fn right_jacobian_inverse<'py>(
+        py: Python<'py>,
+        xi: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        Ok(mat_to_py(
+            py,
+            &Se3::right_jacobian_inverse(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
+        ))
     }
 
     /// `a_from_b @ b_from_c` composes; `a_from_b @ points_b` transforms an (N, 3) array (or one
@@ -277,12 +354,20 @@ impl PySe3 {
         if let Ok(other) = rhs.extract::<PyRef<'_, PySe3>>() {
             return Ok(Py::new(py, PySe3::from(self.inner * other.inner))?.into_any());
         }
-        let single = rhs.getattr("ndim").and_then(|d| d.extract::<usize>()).map(|d| d == 1).unwrap_or(false)
+        let single = rhs
+            .getattr("ndim")
+            .and_then(|d| d.extract::<usize>())
+            .map(|d| d == 1)
+            .unwrap_or(false)
             || rhs.extract::<Vec<f64>>().is_ok();
         let points = arrays::rows(rhs, 3, "points")?;
         let t = self.inner;
         let out = map_points(py, &points, move |p| t.transform_point(&p))?;
-        Ok(if single { out.reshape([3])?.into_any().unbind() } else { out.into_any().unbind() })
+        Ok(if single {
+            out.reshape([3])?.into_any().unbind()
+        } else {
+            out.into_any().unbind()
+        })
     }
 
     fn __repr__(&self) -> String {
@@ -349,7 +434,11 @@ impl PyCamera {
 
     /// Projects an (N, 3) array of points in the camera frame to (N, 2) pixels; rows the model
     /// cannot image are NaN. A float64 C-contiguous input is read in place; the GIL is released.
-    fn project<'py>(&self, py: Python<'py>, points: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    fn project<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let points = arrays::rows(points, 3, "points")?;
         let n = points.shape()[0];
         let src = points.as_slice()?;
@@ -358,12 +447,18 @@ impl PyCamera {
             let mut uv = vec![0.0; 2 * n];
             camera.project_points(src, &mut uv).map(|()| uv)
         });
-        Ok(Array2::from_shape_vec((n, 2), out.py()?).map_err(|e| input_error("points", "(N, 3)", e))?.into_pyarray(py))
+        Ok(Array2::from_shape_vec((n, 2), out.py()?)
+            .map_err(|e| input_error("points", "(N, 3)", e))?
+            .into_pyarray(py))
     }
 
     /// Unprojects an (N, 2) array of pixels to (N, 3) unit bearing vectors; NaN rows where the
     /// model cannot invert the pixel. The GIL is released.
-    fn unproject<'py>(&self, py: Python<'py>, pixels: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    fn unproject<'py>(
+        &self,
+        py: Python<'py>,
+        pixels: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
         let pixels = arrays::rows(pixels, 2, "pixels")?;
         let n = pixels.shape()[0];
         let src = pixels.as_slice()?;
@@ -372,7 +467,9 @@ impl PyCamera {
             let mut xyz = vec![0.0; 3 * n];
             camera.unproject_points(src, &mut xyz).map(|()| xyz)
         });
-        Ok(Array2::from_shape_vec((n, 3), out.py()?).map_err(|e| input_error("pixels", "(N, 2)", e))?.into_pyarray(py))
+        Ok(Array2::from_shape_vec((n, 3), out.py()?)
+            .map_err(|e| input_error("pixels", "(N, 2)", e))?
+            .into_pyarray(py))
     }
 
     /// Pixels (N, 2) and Jacobians ∂(u, v)/∂(x, y, z) (N, 2, 3); NaN where not imageable.
@@ -380,14 +477,17 @@ impl PyCamera {
         &self,
         py: Python<'py>,
         points: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray3<f64>>)> {
+    ) -> PyResult<PixelsAndJacobians<'py>> {
         let points = arrays::rows(points, 3, "points")?;
         let view = points.as_array();
         let n = view.nrows();
         let mut uv = Array2::from_elem((n, 2), f64::NAN);
         let mut jac = Array3::from_elem((n, 2, 3), f64::NAN);
         for (i, row) in view.outer_iter().enumerate() {
-            if let Some((pixel, j)) = self.inner.project_with_jacobian(&Vector3::new(row[0], row[1], row[2])) {
+            if let Some((pixel, j)) = self
+                .inner
+                .project_with_jacobian(&Vector3::new(row[0], row[1], row[2]))
+            {
                 uv[[i, 0]] = pixel.x;
                 uv[[i, 1]] = pixel.y;
                 for r in 0..2 {
@@ -401,7 +501,11 @@ impl PyCamera {
     }
 
     /// Whether each pixel of an (N, 2) array lies inside the image.
-    fn contains<'py>(&self, py: Python<'py>, pixels: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArray1<bool>>> {
+    fn contains<'py>(
+        &self,
+        py: Python<'py>,
+        pixels: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray1<bool>>> {
         let pixels = arrays::rows(pixels, 2, "pixels")?;
         let inside: Vec<bool> = pixels
             .as_array()
@@ -426,7 +530,12 @@ impl PyCamera {
 /// used by tests to prove that inputs are read in place, without a copy.
 #[pyfunction]
 pub fn _data_address(array: &Bound<'_, PyAny>) -> PyResult<usize> {
-    let cols = array.getattr("shape")?.extract::<Vec<usize>>()?.get(1).copied().unwrap_or(1);
+    let cols = array
+        .getattr("shape")?
+        .extract::<Vec<usize>>()?
+        .get(1)
+        .copied()
+        .unwrap_or(1);
     let rows = arrays::rows(array, cols, "array")?;
     Ok(rows.as_slice()?.as_ptr() as usize)
 }

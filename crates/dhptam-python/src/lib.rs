@@ -5,10 +5,14 @@
 //! work proportional to the input size. Core errors become `dhptam.errors` exceptions in
 //! `errors.rs`, and nowhere else.
 
+// Python functions return tuples of typed numpy arrays; naming each tuple would hide, not help.
+#![allow(clippy::type_complexity)]
+
 mod arrays;
 mod config;
 mod errors;
 mod geometry;
+mod stereo;
 
 use std::sync::{Mutex, OnceLock};
 
@@ -59,6 +63,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<geometry::PySe3>()?;
     m.add_class::<geometry::PyCamera>()?;
     m.add_class::<config::PyConfig>()?;
+    m.add_class::<stereo::PyStereoRig>()?;
+    m.add_class::<stereo::PyRectifiedStereo>()?;
+    m.add_function(wrap_pyfunction!(stereo::_triangulate, m)?)?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
