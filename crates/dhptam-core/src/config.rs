@@ -13,6 +13,14 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 
+/// What every configuration section provides to [`Config`].
+trait Section {
+    /// Writes the fields as TOML `key = value` lines, each preceded by its documentation.
+    fn write_commented(&self, out: &mut String);
+    /// Checks every field against its documented range, naming the key on failure.
+    fn validate(&self) -> Result<()>;
+}
+
 /// Declares a configuration section: the struct, its `Default`, and a writer of commented TOML
 /// built from the fields' doc comments, so the documentation cannot drift from the defaults.
 macro_rules! config_section {
@@ -35,8 +43,7 @@ macro_rules! config_section {
             }
         }
 
-        impl $name {
-            /// Writes the fields as TOML `key = value` lines, each preceded by its documentation.
+        impl Section for $name {
             fn write_commented(&self, out: &mut String) {
                 $(
                     $( let _ = writeln!(out, "#{}", $doc); )*
@@ -45,6 +52,10 @@ macro_rules! config_section {
                         .unwrap_or_else(|e| format!("\"<unserialisable: {e}>\""));
                     let _ = writeln!(out, "{} = {}\n", stringify!($field), value);
                 )*
+            }
+
+            fn validate(&self) -> Result<()> {
+                self.check()
             }
         }
     };
@@ -121,13 +132,13 @@ config_section! {
 }
 
 impl LogConfig {
-    fn validate(&self) -> Result<()> {
+    fn check(&self) -> Result<()> {
         Ok(())
     }
 }
 
 impl RectificationConfig {
-    fn validate(&self) -> Result<()> {
+    fn check(&self) -> Result<()> {
         check(
             "rectification.balance",
             (0.0..=1.0).contains(&self.balance),
@@ -144,7 +155,7 @@ impl RectificationConfig {
 }
 
 impl TriangulationConfig {
-    fn validate(&self) -> Result<()> {
+    fn check(&self) -> Result<()> {
         check(
             "triangulation.min_depth_m",
             self.min_depth_m > 0.0,
@@ -183,16 +194,33 @@ fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> 
     }
 }
 
-/// The whole configuration, one table per stage.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Config {
+/// Declares [`Config`] from its sections: one line per `[table]`, in the order printed by
+/// `dhptam config --defaults`.
+macro_rules! config_root {
+    ($( $(#[doc = $doc:literal])* $field:ident : $ty:ty ),* $(,)?) => {
+        /// The whole configuration, one table per stage.
+        #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+        #[serde(deny_unknown_fields, default)]
+        pub struct Config {
+            $( $(#[doc = $doc])* pub $field: $ty, )*
+        }
+
+        impl Config {
+            /// The sections with their table names.
+            fn sections(&self) -> Vec<(&'static str, &dyn Section)> {
+                vec![$( (stringify!($field), &self.$field as &dyn Section), )*]
+            }
+        }
+    };
+}
+
+config_root! {
     /// `[log]`
-    pub log: LogConfig,
+    log: LogConfig,
     /// `[rectification]`
-    pub rectification: RectificationConfig,
+    rectification: RectificationConfig,
     /// `[triangulation]`
-    pub triangulation: TriangulationConfig,
+    triangulation: TriangulationConfig,
 }
 
 impl Config {
@@ -225,9 +253,9 @@ impl Config {
 
     /// Checks every value against its documented range.
     pub fn validate(&self) -> Result<()> {
-        self.log.validate()?;
-        self.rectification.validate()?;
-        self.triangulation.validate()
+        self.sections()
+            .into_iter()
+            .try_for_each(|(_, section)| section.validate())
     }
 
     /// The configuration as plain TOML.
@@ -241,15 +269,9 @@ impl Config {
         let mut out = String::from(
             "# dhptam configuration. Every key is optional: a missing key keeps the value shown.\n\n",
         );
-        type WriteSection<'a> = &'a dyn Fn(&mut String);
-        let sections: [(&str, WriteSection); 3] = [
-            ("log", &|o| self.log.write_commented(o)),
-            ("rectification", &|o| self.rectification.write_commented(o)),
-            ("triangulation", &|o| self.triangulation.write_commented(o)),
-        ];
-        for (name, write) in sections {
+        for (name, section) in self.sections() {
             let _ = writeln!(out, "[{name}]");
-            write(&mut out);
+            section.write_commented(&mut out);
         }
         out.truncate(out.trim_end().len());
         out.push('\n');

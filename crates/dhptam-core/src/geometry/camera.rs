@@ -289,25 +289,31 @@ impl Projective for Kb4 {
         if theta_d < 1e-12 {
             return Some(Vector3::new(m.x, m.y, 1.0).normalize());
         }
-        // Newton on θ_d(θ) = θ_d from θ = θ_d.
+        // Newton on θ_d(θ) = θ_d from θ = θ_d, stopping on the residual so that the last
+        // evaluation doubles as the validity check (no extra polynomial evaluation).
+        let tolerance = 1e-15 * (1.0 + theta_d);
         let mut theta = theta_d;
+        let mut converged = false;
         for _ in 0..MAX_UNDISTORT_ITERATIONS {
             let (f, df) = self.theta_d(theta);
-            if df <= 0.0 {
+            if df <= 0.0 || !theta.is_finite() {
                 return None;
             }
-            let step = (f - theta_d) / df;
+            let residual = f - theta_d;
+            if residual.abs() <= tolerance {
+                converged = true;
+                break;
+            }
+            let step = residual / df;
             theta -= step;
-            if step.abs() < 1e-15 * (1.0 + theta.abs()) {
+            if step.abs() <= 1e-15 * (1.0 + theta.abs()) {
+                // Rounding can keep the residual a few ulp above the tolerance; a step this
+                // small means θ no longer changes.
+                converged = true;
                 break;
             }
         }
-        let (f, df) = self.theta_d(theta);
-        if !theta.is_finite()
-            || !(0.0..std::f64::consts::PI).contains(&theta)
-            || df <= 0.0
-            || (f - theta_d).abs() > 1e-11 * (1.0 + theta_d)
-        {
+        if !converged || !(0.0..std::f64::consts::PI).contains(&theta) {
             return None;
         }
         let (sin_t, cos_t) = theta.sin_cos();
