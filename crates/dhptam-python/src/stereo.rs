@@ -4,7 +4,7 @@ use std::sync::OnceLock;
 
 use dhptam_core::config::TriangulationConfig;
 use dhptam_core::geometry::rectify::{
-    remap_bilinear_f32, remap_bilinear_u8, RectifiedStereo, Side, StereoRig,
+    remap_bilinear, RectifiedStereo, RemapPixel, Side, StereoRig,
 };
 use dhptam_core::geometry::triangulate::{
     triangulate, triangulate_rectified, Rejected, Triangulated,
@@ -92,6 +92,29 @@ pub struct PyRectifiedStereo {
 }
 
 impl PyRectifiedStereo {
+    /// Rectifies an image of camera `side` whose shape the caller has checked.
+    fn resample<'py, T: RemapPixel + numpy::Element + Default>(
+        &self,
+        py: Python<'py>,
+        side: Side,
+        image: &numpy::PyReadonlyArray2<'py, T>,
+        expected: &str,
+    ) -> PyResult<Py<PyAny>> {
+        let camera = *self.inner.camera(side);
+        let src = image
+            .as_slice()
+            .map_err(|_| input_error("image", "a C-contiguous array", "a strided view"))?;
+        let (map_x, map_y) = self.tables(side);
+        let shape = self.shape();
+        let mut dst = vec![T::default(); shape.0 * shape.1];
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        py.detach(|| remap_bilinear(src, w, h, map_x, map_y, &mut dst))
+            .py()?;
+        let out =
+            Array2::from_shape_vec(shape, dst).map_err(|e| input_error("image", expected, e))?;
+        Ok(out.into_pyarray(py).into_any().unbind())
+    }
+
     fn tables(&self, side: Side) -> &(Vec<f32>, Vec<f32>) {
         let index = usize::from(side == Side::Right);
         self.tables[index].get_or_init(|| self.inner.remap_tables(side))
@@ -275,32 +298,13 @@ impl PyRectifiedStereo {
                 Err(input_error("image", &expected, format!("shape {shape:?}")))
             }
         };
-        let shape = self.shape();
         if let Ok(img) = image.extract::<numpy::PyReadonlyArray2<'py, u8>>() {
             check(img.shape())?;
-            let src = img
-                .as_slice()
-                .map_err(|_| input_error("image", "a C-contiguous array", "a strided view"))?;
-            let (map_x, map_y) = self.tables(side);
-            let mut dst = vec![0u8; shape.0 * shape.1];
-            py.detach(|| remap_bilinear_u8(src, w, h, map_x, map_y, &mut dst))
-                .py()?;
-            let out = Array2::from_shape_vec(shape, dst)
-                .map_err(|e| input_error("image", &expected, e))?;
-            return Ok(out.into_pyarray(py).into_any().unbind());
+            return self.resample(py, side, &img, &expected);
         }
         if let Ok(img) = image.extract::<numpy::PyReadonlyArray2<'py, f32>>() {
             check(img.shape())?;
-            let src = img
-                .as_slice()
-                .map_err(|_| input_error("image", "a C-contiguous array", "a strided view"))?;
-            let (map_x, map_y) = self.tables(side);
-            let mut dst = vec![0f32; shape.0 * shape.1];
-            py.detach(|| remap_bilinear_f32(src, w, h, map_x, map_y, &mut dst))
-                .py()?;
-            let out = Array2::from_shape_vec(shape, dst)
-                .map_err(|e| input_error("image", &expected, e))?;
-            return Ok(out.into_pyarray(py).into_any().unbind());
+            return self.resample(py, side, &img, &expected);
         }
         let shape = image
             .getattr("shape")

@@ -490,9 +490,49 @@ fn check_remap(
     Ok(())
 }
 
-/// Resamples a grey image through remap tables with bilinear interpolation: `dst[i]` is `src`
-/// at `(map_x[i], map_y[i])`, rounded, with a black border (see [`RectifiedStereo::remap_tables`]).
-/// Runs in parallel over blocks of rows.
+/// A pixel type the remap functions can resample.
+pub trait RemapPixel: Copy + Into<f32> + Send + Sync {
+    /// Converts an interpolated value back to the pixel type.
+    fn from_interpolated(value: f32) -> Self;
+}
+
+impl RemapPixel for u8 {
+    fn from_interpolated(value: f32) -> Self {
+        // The value is within [0, 255] (a convex combination of u8 values and 0): round it.
+        (value + 0.5).min(255.0) as u8
+    }
+}
+
+impl RemapPixel for f32 {
+    fn from_interpolated(value: f32) -> Self {
+        value
+    }
+}
+
+/// Resamples a single-channel image through remap tables with bilinear interpolation:
+/// `dst[i]` is `src` at `(map_x[i], map_y[i])` (rounded for `u8`), with a black border (see
+/// [`RectifiedStereo::remap_tables`]). Runs in parallel over blocks of rows.
+pub fn remap_bilinear<T: RemapPixel>(
+    src: &[T],
+    src_w: usize,
+    src_h: usize,
+    map_x: &[f32],
+    map_y: &[f32],
+    dst: &mut [T],
+) -> Result<()> {
+    check_remap(src.len(), src_w, src_h, map_x.len(), map_y.len(), dst.len())?;
+    dst.par_chunks_mut(REMAP_CHUNK)
+        .zip(map_x.par_chunks(REMAP_CHUNK))
+        .zip(map_y.par_chunks(REMAP_CHUNK))
+        .for_each(|((out, xs), ys)| {
+            for ((d, &x), &y) in out.iter_mut().zip(xs).zip(ys) {
+                *d = T::from_interpolated(bilinear(src, src_w, src_h, x, y));
+            }
+        });
+    Ok(())
+}
+
+/// [`remap_bilinear`] for 8-bit images.
 pub fn remap_bilinear_u8(
     src: &[u8],
     src_w: usize,
@@ -501,20 +541,10 @@ pub fn remap_bilinear_u8(
     map_y: &[f32],
     dst: &mut [u8],
 ) -> Result<()> {
-    check_remap(src.len(), src_w, src_h, map_x.len(), map_y.len(), dst.len())?;
-    dst.par_chunks_mut(REMAP_CHUNK)
-        .zip(map_x.par_chunks(REMAP_CHUNK))
-        .zip(map_y.par_chunks(REMAP_CHUNK))
-        .for_each(|((out, xs), ys)| {
-            for ((d, &x), &y) in out.iter_mut().zip(xs).zip(ys) {
-                // The value is within [0, 255] (a convex combination of u8 values and 0).
-                *d = (bilinear(src, src_w, src_h, x, y) + 0.5).min(255.0) as u8;
-            }
-        });
-    Ok(())
+    remap_bilinear(src, src_w, src_h, map_x, map_y, dst)
 }
 
-/// [`remap_bilinear_u8`] for `f32` images (no rounding; the border is 0.0).
+/// [`remap_bilinear`] for `f32` images (no rounding; the border is 0.0).
 pub fn remap_bilinear_f32(
     src: &[f32],
     src_w: usize,
@@ -523,14 +553,5 @@ pub fn remap_bilinear_f32(
     map_y: &[f32],
     dst: &mut [f32],
 ) -> Result<()> {
-    check_remap(src.len(), src_w, src_h, map_x.len(), map_y.len(), dst.len())?;
-    dst.par_chunks_mut(REMAP_CHUNK)
-        .zip(map_x.par_chunks(REMAP_CHUNK))
-        .zip(map_y.par_chunks(REMAP_CHUNK))
-        .for_each(|((out, xs), ys)| {
-            for ((d, &x), &y) in out.iter_mut().zip(xs).zip(ys) {
-                *d = bilinear(src, src_w, src_h, x, y);
-            }
-        });
-    Ok(())
+    remap_bilinear(src, src_w, src_h, map_x, map_y, dst)
 }
