@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import tumvie_layout as tl
 
-from dhptam import InputError
+from dhptam import InputError, ParseError
 from dhptam.datasets import EventSource
 
 N_EVENTS = 300_000  # enough that the plain binary search does many single-element reads
@@ -121,6 +121,24 @@ def test_an_empty_file(tmp_path: Path):
         assert len(source) == 0 and source.t_range_ns == (0, 0)
         assert len(source.window(-(10**12), 10**12)) == 0
         assert list(source.iter_windows(10)) == []
+
+
+@pytest.mark.parametrize("bad", ["float", "group", "array"])
+def test_a_bad_t_offset_is_a_parse_error(tmp_path: Path, rng: np.random.Generator, bad: str):
+    import h5py
+
+    path = tmp_path / "dsec.h5"
+    tl.write_event_file(path, *tl.random_events(rng, 100, 0, 5000, 64, 48))
+    with h5py.File(path, "a") as f:
+        if bad == "float":
+            f["t_offset"] = 1.5
+        elif bad == "group":
+            f.create_group("t_offset")
+        else:
+            f["t_offset"] = np.arange(3)
+    with pytest.raises(ParseError, match="t_offset") as info:
+        EventSource(path)
+    assert info.value.field == "t_offset" and info.value.path == str(path)
 
 
 MEMORY_PROBE = textwrap.dedent(

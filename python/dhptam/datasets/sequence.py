@@ -270,11 +270,16 @@ class EventSource:
         self._n = lengths["t"]
         self._offset_us = 0
         if "t_offset" in f:
-            raw = self._read(lambda: f["t_offset"][()], "reading /t_offset")
-            arr = np.asarray(raw)
-            if arr.size != 1 or arr.dtype.kind not in "iu":
+            node = f["t_offset"]
+            arr = (
+                np.asarray(self._read(lambda: node[()], "reading /t_offset"))
+                if hasattr(node, "dtype")
+                else None
+            )
+            if arr is None or arr.size != 1 or arr.dtype.kind not in "iu":
                 raise ParseError(
-                    f"{self.path}: /t_offset must be one integer (µs), got {arr.dtype} of shape {arr.shape}",
+                    f"{self.path}: /t_offset must be one integer (µs), got "
+                    + ("a group" if arr is None else f"{arr.dtype} of shape {arr.shape}"),
                     path=str(self.path),
                     field="t_offset",
                 )
@@ -382,7 +387,11 @@ class EventSource:
                 path=str(self.path),
                 field="events/t",
             )
-        t_ns = (t.astype(np.int64) + self._offset_us) * 1000
+        # In place on the freshly read array: a window can hold millions of events.
+        t_ns = t.astype(np.int64, copy=False)
+        if self._offset_us:
+            t_ns += self._offset_us
+        t_ns *= 1000
         return EventWindow(
             x=x.astype(np.uint16, copy=False),
             y=y.astype(np.uint16, copy=False),

@@ -581,7 +581,7 @@ class _EventFileWriter:
         if n == 0:
             return
         for name, a in (("x", x), ("y", y), ("t_ns", t_ns), ("p", p)):
-            if a.dtype.kind not in "iub":
+            if a.dtype.kind not in ("iu" if name == "t_ns" else "iub"):
                 raise InputError(f"add_events({side!r}): {name} must be integers, got {a.dtype}", field=name)
         for name, a, limit in (("x", x, self.width), ("y", y, self.height)):
             if int(a.min()) < 0 or int(a.max()) >= limit:
