@@ -72,7 +72,11 @@ def test_round_trip(tmp_path: Path, rng: np.random.Generator):
             for side in ("left", "right"):
                 writer.add_events(side, *chunks[side][k])
         writer.set_mocap(mocap_t, mocap)
+        writer.add_text_file("sim-desk-gt-left-frame.tum", "# t x y z qx qy qz qw\n")
+        with pytest.raises(InputError):
+            writer.add_text_file("../escape.txt", "")
     seq_dir = tmp_path / "sim-desk"
+    assert (seq_dir / "sim-desk-gt-left-frame.tum").read_text() == "# t x y z qx qy qz qw\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["sim-desk"]  # no temporary left over
 
     # The real layout, file by file.

@@ -772,6 +772,21 @@ class TumVieWriter:
             raise InputError("set_mocap: poses hold NaN or infinity", field="world_from_marker")
         self._mocap = (t.astype(np.int64), poses.copy())
 
+    def add_text_file(self, relative_path: str, text: str) -> None:
+        """Write an extra text file into the sequence folder (e.g. a TUM ground-truth
+        trajectory), so that it appears atomically with the rest on :meth:`close`."""
+        self._check_open()
+        target = (self.tmp_dir / relative_path).resolve()
+        if self.tmp_dir.resolve() not in target.parents:
+            raise InputError(
+                f"{relative_path!r} is not a path inside the sequence folder", field="relative_path"
+            )
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            target.write_text(text, encoding="utf-8")
+        except OSError as err:
+            raise FileError(f"{target}: cannot write ({err})", path=str(target)) from None
+
     def close(self) -> Path:
         """Finish every file and move the sequence into place; returns its folder."""
         self._check_open()
