@@ -250,7 +250,7 @@ L = "left_images/image_timestamps_left.txt"
 EV = "mocap-desk-events_left.h5"
 
 # (id, edit of the layout, expected error, file name the message must name, field or None)
-CORRUPTIONS: list[tuple[str, Callable[[tl.Layout], None], type, str, str | None]] = [
+CORRUPTIONS: list[tuple[str, Callable[[tl.Layout], object], type, str, str | None]] = [
     (
         "missing event file",
         lambda s: (s.seq_dir / "mocap-desk-events_right.h5").unlink(),
