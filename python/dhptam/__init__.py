@@ -9,7 +9,8 @@ Quick look::
 
 Modules: :mod:`dhptam.geometry` (Lie groups, cameras, rectification, triangulation),
 :mod:`dhptam.errors` (exceptions), :mod:`dhptam.logs` (logging), :mod:`dhptam.cli` (the
-``dhptam`` command).
+``dhptam`` command), :mod:`dhptam.datasets` (sequences, TUM-VIE reader and writer; imported
+on its own, as it loads h5py).
 """
 
 from __future__ import annotations
