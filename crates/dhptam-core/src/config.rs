@@ -154,11 +154,11 @@ config_section! {
         /// Offset added to the intensity before its logarithm (the pixel's dark level).
         log_eps: f64 = 0.0002,
         /// Largest per-pixel log-intensity change allowed between two event-camera renders.
-        max_log_step: f64 = 0.5,
+        max_log_step: f64 = 1.0,
         /// Shortest interval between event-camera renders, microseconds.
-        min_render_step_us: f64 = 500.0,
+        min_render_step_us: f64 = 2000.0,
         /// Longest interval between event-camera renders, microseconds.
-        max_render_step_us: f64 = 5000.0,
+        max_render_step_us: f64 = 10000.0,
         /// Shortest frame exposure, milliseconds.
         min_exposure_ms: f64 = 1.0,
         /// Longest frame exposure, milliseconds.

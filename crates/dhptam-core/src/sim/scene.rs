@@ -94,7 +94,7 @@ impl Scene {
     pub fn validate(&self) -> Result<()> {
         let n = self.textures.len();
         for (i, b) in std::iter::once(&self.room).chain(&self.boxes).enumerate() {
-            if (0..3).any(|a| !(b.min[a] < b.max[a])) {
+            if (0..3).any(|a| b.min[a].partial_cmp(&b.max[a]) != Some(std::cmp::Ordering::Less)) {
                 return Err(Error::invalid(
                     format!("scene box {i}"),
                     "min < max on every axis",

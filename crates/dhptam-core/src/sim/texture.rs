@@ -29,28 +29,15 @@ struct Level {
 }
 
 impl Level {
-    /// Texel `(x, y)` with the wrap rule applied.
-    #[inline]
-    fn texel(&self, x: i64, y: i64, wrap: Wrap) -> f32 {
-        let (w, h) = (self.width as i64, self.height as i64);
-        let (x, y) = match wrap {
-            Wrap::Repeat => (x.rem_euclid(w), y.rem_euclid(h)),
-            Wrap::Clamp => (x.clamp(0, w - 1), y.clamp(0, h - 1)),
-        };
-        self.texels[(y * w + x) as usize]
-    }
-
     /// Bilinear lookup; texel centres sit at integer + ½ in units of texels.
     #[inline]
     fn bilinear(&self, s: f32, t: f32, wrap: Wrap) -> f32 {
-        let x = s * self.width as f32 - 0.5;
-        let y = t * self.height as f32 - 0.5;
-        let (x0, y0) = (x.floor(), y.floor());
-        let (fx, fy) = (x - x0, y - y0);
-        let (xi, yi) = (x0 as i64, y0 as i64);
-        let top = self.texel(xi, yi, wrap) * (1.0 - fx) + self.texel(xi + 1, yi, wrap) * fx;
-        let bottom =
-            self.texel(xi, yi + 1, wrap) * (1.0 - fx) + self.texel(xi + 1, yi + 1, wrap) * fx;
+        let (x0, x1, fx) = neighbours(s, self.width, wrap);
+        let (y0, y1, fy) = neighbours(t, self.height, wrap);
+        let (r0, r1) = (y0 * self.width, y1 * self.width);
+        let tx = &self.texels;
+        let top = tx[r0 + x0] * (1.0 - fx) + tx[r0 + x1] * fx;
+        let bottom = tx[r1 + x0] * (1.0 - fx) + tx[r1 + x1] * fx;
         top * (1.0 - fy) + bottom * fy
     }
 
@@ -225,6 +212,36 @@ impl Texture {
             })
             .collect();
         Self::new(size, size, texels).expect("tile shades are clamped to [0, 1]")
+    }
+}
+
+/// The two texels around texture coordinate `s` along an axis of `n` texels, and the weight
+/// of the second. Wrapping happens in floating point first (`s − ⌊s⌋`), so the indices need
+/// at most one correction instead of an integer remainder per texel.
+#[inline]
+fn neighbours(s: f32, n: usize, wrap: Wrap) -> (usize, usize, f32) {
+    let last = n as i64 - 1;
+    match wrap {
+        Wrap::Repeat => {
+            let x = (s - s.floor()) * n as f32 - 0.5; // in [−½, n − ½)
+            let x0 = x.floor();
+            let f = x - x0;
+            let i0 = x0 as i64; // −1 ..= n − 1
+            let a = if i0 < 0 { last } else { i0.min(last) };
+            let b = if i0 + 1 > last { 0 } else { i0 + 1 };
+            (a as usize, b as usize, f)
+        }
+        Wrap::Clamp => {
+            let x = (s * n as f32 - 0.5).clamp(-1.0, n as f32);
+            let x0 = x.floor();
+            let f = x - x0;
+            let i0 = x0 as i64;
+            (
+                (i0.clamp(0, last)) as usize,
+                ((i0 + 1).clamp(0, last)) as usize,
+                f,
+            )
+        }
     }
 }
 

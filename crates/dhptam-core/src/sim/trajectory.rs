@@ -74,7 +74,7 @@ impl Trajectory {
 
     /// Samples `f(t)` (t in seconds from 0) every `1/rate_hz` over `[0, duration_ns]`.
     pub fn from_fn(duration_ns: i64, rate_hz: f64, f: impl Fn(f64) -> Se3) -> Result<Self> {
-        if duration_ns <= 0 || !(rate_hz > 0.0) {
+        if duration_ns <= 0 || !rate_hz.is_finite() || rate_hz <= 0.0 {
             return Err(Error::invalid(
                 "trajectory duration and rate",
                 "positive values",
