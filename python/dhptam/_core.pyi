@@ -184,6 +184,7 @@ _EventArrays = tuple[
     npt.NDArray[np.uint16], npt.NDArray[np.uint16], npt.NDArray[np.int64], npt.NDArray[np.int8]
 ]
 
+@final
 class Simulator:
     """The events+frames simulator (desk room, four-camera rig, lighting profile)."""
 

@@ -330,8 +330,24 @@ fn threshold_mismatch_and_noise_follow_their_parameters() {
     assert!((three - 0.3413).abs() < 0.03, "{three}");
 }
 
+/// The rig of [`cameras`] at a quarter of the resolution (kept small: `cargo test` runs
+/// unoptimised).
 fn small_simulator(seed: u64, profile: Profile) -> Simulator {
-    let rig: [RigCamera; 4] = cameras()[..4].try_into().unwrap();
+    let rig: [RigCamera; 4] = std::array::from_fn(|i| {
+        let c = cameras()[i];
+        let p = c.camera.model.params();
+        let scaled: Vec<f64> = p
+            .iter()
+            .enumerate()
+            .map(|(k, v)| match k {
+                0 | 1 => v / 4.0,
+                2 | 3 => (v + 0.5) / 4.0 - 0.5,
+                _ => *v,
+            })
+            .collect();
+        let camera = Camera::new("kb4", &scaled, c.camera.width / 4, c.camera.height / 4).unwrap();
+        RigCamera { camera, ..c }
+    });
     let region = Scene::desk_room_region();
     let duration_ns = 200_000_000;
     let trajectory = BuiltinMotion::Shake6dof
@@ -355,7 +371,7 @@ fn simulation_is_deterministic_for_a_seed() {
         let mut sim = small_simulator(seed, Profile::Hdr);
         let mut frames = Vec::new();
         let mut events = Vec::new();
-        for k in 0..3 {
+        for k in 0..2 {
             let t = k * 50_000_000;
             frames.push(sim.frame_pair(t));
             events.push(sim.events_until(t + 50_000_000).unwrap());
@@ -367,7 +383,7 @@ fn simulation_is_deterministic_for_a_seed() {
     assert_eq!(frames_a, frames_b);
     assert_eq!(events_a, events_b);
     let total: usize = events_a.iter().map(|e| e[0].len() + e[1].len()).sum();
-    assert!(total > 1000, "a shaking camera must see events: {total}");
+    assert!(total > 200, "a shaking camera must see events: {total}");
     for pair in &events_a {
         for side in pair {
             assert!(side.windows(2).all(|w| w[0].t_ns <= w[1].t_ns));
