@@ -209,10 +209,12 @@ impl Simulator {
     /// The next stereo frame pair, exposed from `t_ns` for the auto-exposure's current choice
     /// (times the profile's factor); updates the auto-exposure from the left image.
     pub fn frame_pair(&mut self, t_ns: i64) -> FramePair {
+        // The profile's factor may push below the auto-exposure's range (flicker) but never
+        // beyond the longest exposure the camera allows.
         let exposure_ns = ((self.sensor.exposure_ns() as f64
             * self.profile.exposure_factor(self.frame_index))
         .round() as i64)
-            .max(1);
+            .clamp(1, self.params.sensor.max_exposure_ns);
         let k = self.params.blur_samples as i64;
         let mut images = Vec::with_capacity(2);
         for cam in [0usize, 1] {
