@@ -249,3 +249,19 @@ def test_cli_lists_presets_and_simulates(tmp_path: Path, capsys: pytest.CaptureF
     # An existing sequence is not overwritten without --overwrite.
     code = main(["simulate", "--preset", "tiny", "--out", str(tmp_path), "--duration", "0.1", "--quiet"])
     assert code == 2
+
+
+def test_mixed_camera_models_round_trip(tmp_path: Path):
+    summary = simulate(tmp_path, preset="tiny-mixed", duration_s=0.1, seed=1)
+    with load_tumvie(summary.path) as seq:
+        models = {k: cam.model for k, cam in seq.calibration.cameras.items()}
+        assert models == {
+            "frame_left": "radtan",
+            "frame_right": "radtan",
+            "event_left": "pinhole",
+            "event_right": "pinhole",
+        }
+        expected = RIGS["tiny-mixed"].cameras()
+        for key, cam in seq.calibration.cameras.items():
+            assert np.allclose(cam.params, expected[key].params)
+        assert len(seq.frames) == 2 and seq.frames[1].left.std() > 5

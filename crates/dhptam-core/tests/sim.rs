@@ -34,19 +34,23 @@ fn smooth_scene() -> Scene {
             decals: Vec::new(),
         })
     };
-    Scene {
-        textures: vec![noise],
-        room: SceneBox {
-            min: [-2.5, -2.0, 0.0],
-            max: [2.5, 2.5, 2.6],
-            faces: faces(),
-        },
-        boxes: vec![SceneBox {
-            min: [-0.4, 1.0, 0.7],
-            max: [0.3, 1.5, 1.2],
-            faces: faces(),
-        }],
-    }
+    let room = SceneBox {
+        min: [-2.5, -2.0, 0.0],
+        max: [2.5, 2.5, 2.6],
+        faces: faces(),
+    };
+    let block = |min: [f32; 3], max: [f32; 3]| SceneBox {
+        min,
+        max,
+        faces: faces(),
+    };
+    // A box with a smaller one on top (one group) and a separate one.
+    let boxes = vec![
+        block([-0.4, 1.0, 0.7], [0.3, 1.5, 1.2]),
+        block([-0.2, 1.1, 1.2], [0.0, 1.3, 1.4]),
+        block([0.8, 1.2, 0.0], [1.2, 1.6, 0.8]),
+    ];
+    Scene::new(vec![noise], room, boxes).unwrap()
 }
 
 /// A TUM-VIE-like rig at low resolution: kb4 frame cameras 10 cm apart, kb4 event cameras
@@ -123,7 +127,7 @@ fn rendered_texture_appears_at_the_projected_pixel_in_every_camera() {
         let (mut errors, mut shifted_errors, mut checked) = (Vec::new(), Vec::new(), 0);
         while checked < 200 {
             // A random point on a random face of the box or of the room.
-            let b = &scene.boxes[0];
+            let b = &scene.boxes[rng.random_range(0..scene.boxes.len())];
             let (lo, hi) = if rng.random::<bool>() {
                 (b.min, b.max)
             } else {

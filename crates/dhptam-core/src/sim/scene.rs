@@ -76,6 +76,76 @@ pub struct Scene {
     pub room: SceneBox,
     /// Solid boxes inside the room.
     pub boxes: Vec<SceneBox>,
+    /// Boxes grouped by contact, with each group's bounding box: a ray that misses a group's
+    /// bounds (or reaches them beyond the nearest hit so far) skips all its boxes.
+    groups: Vec<Group>,
+}
+
+#[derive(Clone, Debug)]
+struct Group {
+    min: [f32; 3],
+    max: [f32; 3],
+    members: Vec<usize>,
+}
+
+/// Entry and exit distances of a ray through an axis-aligned box, and the entry axis.
+#[inline]
+fn slab(min: &[f32; 3], max: &[f32; 3], origin: &[f32; 3], inv: &[f32; 3]) -> (f32, f32, usize) {
+    let mut near = f32::NEG_INFINITY;
+    let mut far = f32::INFINITY;
+    let mut near_axis = 0;
+    for a in 0..3 {
+        let t1 = (min[a] - origin[a]) * inv[a];
+        let t2 = (max[a] - origin[a]) * inv[a];
+        let (lo, hi) = if t1 < t2 { (t1, t2) } else { (t2, t1) };
+        if lo > near {
+            near = lo;
+            near_axis = a;
+        }
+        far = far.min(hi);
+    }
+    (near, far, near_axis)
+}
+
+/// Connected components of boxes that touch or overlap (within 1 cm).
+fn group_boxes(boxes: &[SceneBox]) -> Vec<Group> {
+    let touch = |a: &SceneBox, b: &SceneBox| {
+        (0..3).all(|k| a.min[k] <= b.max[k] + 0.01 && b.min[k] <= a.max[k] + 0.01)
+    };
+    let mut label: Vec<usize> = (0..boxes.len()).collect();
+    // Union by repeated relabelling: a few dozen boxes, so quadratic passes are fine.
+    loop {
+        let mut changed = false;
+        for i in 0..boxes.len() {
+            for j in 0..boxes.len() {
+                if label[j] > label[i] && touch(&boxes[i], &boxes[j]) {
+                    label[j] = label[i];
+                    changed = true;
+                }
+            }
+        }
+        if !changed {
+            break;
+        }
+    }
+    let mut groups: Vec<Group> = Vec::new();
+    for (i, b) in boxes.iter().enumerate() {
+        match groups.iter_mut().find(|g| label[g.members[0]] == label[i]) {
+            Some(g) => {
+                g.members.push(i);
+                for k in 0..3 {
+                    g.min[k] = g.min[k].min(b.min[k]);
+                    g.max[k] = g.max[k].max(b.max[k]);
+                }
+            }
+            None => groups.push(Group {
+                min: b.min,
+                max: b.max,
+                members: vec![i],
+            }),
+        }
+    }
+    groups
 }
 
 /// Where the camera may go, and what it looks at, for trajectories fitted into a scene.
@@ -90,6 +160,19 @@ pub struct CameraRegion {
 }
 
 impl Scene {
+    /// A scene from its textures, room and boxes; checks it with [`Scene::validate`].
+    pub fn new(textures: Vec<Texture>, room: SceneBox, boxes: Vec<SceneBox>) -> Result<Self> {
+        let groups = group_boxes(&boxes);
+        let scene = Self {
+            textures,
+            room,
+            boxes,
+            groups,
+        };
+        scene.validate()?;
+        Ok(scene)
+    }
+
     /// Checks that every surface refers to an existing texture and that boxes are not empty.
     pub fn validate(&self) -> Result<()> {
         let n = self.textures.len();
@@ -139,24 +222,21 @@ impl Scene {
                 hit = Some((&self.room, 2 * a + side));
             }
         }
-        for b in &self.boxes {
-            let mut near = f32::NEG_INFINITY;
-            let mut far = f32::INFINITY;
-            let mut near_axis = 0;
-            for a in 0..3 {
-                let t1 = (b.min[a] - origin[a]) * inv[a];
-                let t2 = (b.max[a] - origin[a]) * inv[a];
-                let (lo, hi) = if t1 < t2 { (t1, t2) } else { (t2, t1) };
-                if lo > near {
-                    near = lo;
-                    near_axis = a;
+        for group in &self.groups {
+            if group.members.len() > 1 {
+                let (near, far, _) = slab(&group.min, &group.max, &origin, &inv);
+                if near > far || far <= 0.0 || near >= best {
+                    continue;
                 }
-                far = far.min(hi);
             }
-            if near <= far && near > 0.0 && near < best {
-                best = near;
-                // Entering along +axis means through the min face.
-                hit = Some((b, 2 * near_axis + usize::from(dir[near_axis] < 0.0)));
+            for &i in &group.members {
+                let b = &self.boxes[i];
+                let (near, far, axis) = slab(&b.min, &b.max, &origin, &inv);
+                if near <= far && near > 0.0 && near < best {
+                    best = near;
+                    // Entering along +axis means through the min face.
+                    hit = Some((b, 2 * axis + usize::from(dir[axis] < 0.0)));
+                }
             }
         }
         let (b, face_index) = hit?;
@@ -302,14 +382,16 @@ impl Scene {
         boxes.push(object([-0.6, 1.1, 0.76], [-0.3, 1.35, 1.0], speckle));
         boxes.push(object([0.05, 1.2, 0.76], [0.2, 1.5, 1.1], wood));
         boxes.push(object([0.35, 1.0, 0.76], [0.7, 1.3, 0.9], speckle));
-        boxes.push(object([-0.25, 1.52, 0.85], [0.3, 1.6, 1.25], wall));
+        boxes.push(object([-0.25, 1.52, 0.76], [0.3, 1.6, 1.25], wall));
         // A cabinet right of the desk and a crate on the floor to the left.
         boxes.push(object([1.0, 1.2, 0.0], [1.6, 1.9, 0.9], wood));
         boxes.push(object([-1.8, 0.5, 0.0], [-1.2, 1.0, 0.5], speckle));
+        let groups = group_boxes(&boxes);
         Self {
             textures,
             room,
             boxes,
+            groups,
         }
     }
 
@@ -371,6 +453,14 @@ mod tests {
             assert!(hit.distance > 0.3 && hit.distance < 7.0, "{hit:?}");
             assert!((0.0..=1.0).contains(&hit.radiance));
         }
+    }
+
+    #[test]
+    fn boxes_are_grouped_by_contact() {
+        let scene = Scene::desk_room(Vec::new(), 1);
+        let sizes: Vec<usize> = scene.groups.iter().map(|g| g.members.len()).collect();
+        // Desk top, four legs and four objects; the cabinet; the crate.
+        assert_eq!(sizes, vec![9, 1, 1]);
     }
 
     #[test]
