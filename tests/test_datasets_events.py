@@ -87,6 +87,23 @@ def test_both_search_paths_give_identical_index_ranges(event_file, rng):
             assert a.index_range(t0, t1) == b.index_range(t0, t1)
 
 
+def test_an_index_that_stops_early_is_completed_by_binary_search(event_file, rng, tmp_path: Path):
+    """Windows past the last /ms_to_idx entry fall back to the binary search."""
+    _, _, events = event_file
+    index = tl.ms_to_idx(events[2])
+    path = tmp_path / "short-index.h5"
+    short = index[: len(index) // 3]
+    tl.write_event_file(path, *events, index=short)
+    end_ns = 1_000_000 * (len(short) - 1)  # the last ms the index knows
+    edges = [
+        (end_ns + d, end_ns + d + e) for d in (-1000, -1, 0, 1, 999_999, 1_000_000) for e in (1, 1000, 10**6)
+    ]
+    with EventSource(path) as source:
+        assert source.has_index
+        for t0, t1 in query_times(rng, events[2]) + edges:
+            assert_window(source, events, t0, t1)
+
+
 def test_t_offset_shifts_the_file_clock(tmp_path: Path, rng: np.random.Generator):
     """DSEC files store t relative to /t_offset; the index counts ms of the stored t."""
     events = tl.random_events(rng, 50_000, 0, 900_000, 64, 48)

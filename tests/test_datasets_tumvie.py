@@ -155,6 +155,14 @@ def test_calibration_objects_can_be_passed(layout: tl.Layout):
             np.testing.assert_allclose(row_gt[:3], m[:3, 3] - m[:3, 2], atol=1e-12)
 
 
+def test_header_lines_without_hash_are_skipped(layout: tl.Layout):
+    for side in ("left", "right"):
+        path = layout.seq_dir / f"{side}_images/image_timestamps_{side}.txt"
+        path.write_text(path.read_text().replace("# timestamps [us]", "timestamp[us]"))
+    with load_tumvie(layout.seq_dir) as seq:
+        np.testing.assert_array_equal(seq.frames.t_ns, layout.frame_t_ns)
+
+
 def test_a_sequence_without_mocap_has_no_ground_truth(layout: tl.Layout):
     (layout.seq_dir / "mocap_data.txt").unlink()
     with load_tumvie(layout.seq_dir) as seq:
@@ -242,7 +250,7 @@ L = "left_images/image_timestamps_left.txt"
 EV = "mocap-desk-events_left.h5"
 
 # (id, edit of the layout, expected error, file name the message must name, field or None)
-CORRUPTIONS: list[tuple[str, Callable[[tl.Layout], None], type, str, str | None]] = [
+CORRUPTIONS: list[tuple[str, Callable[[tl.Layout], object], type, str, str | None]] = [
     (
         "missing event file",
         lambda s: (s.seq_dir / "mocap-desk-events_right.h5").unlink(),

@@ -198,7 +198,8 @@ class Frames:
                 path=str(path),
                 field="resolution",
             )
-        return image
+        # IMREAD_GRAYSCALE always decodes to 8 bits; this only tells the type checker.
+        return np.asarray(image, dtype=np.uint8)
 
 
 def _h5_error(path: Path, what: str, err: BaseException) -> FileError:

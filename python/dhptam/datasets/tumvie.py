@@ -90,7 +90,11 @@ def _us_to_ns(token: str, path: Path, line: int, field: str) -> int:
 
 
 def _read_rows(path: Path, columns: int, what: str) -> list[tuple[int, list[str]]]:
-    """Data rows (1-based line number, tokens) of a whitespace table with '#' comment lines."""
+    """Data rows (1-based line number, tokens) of a whitespace table.
+
+    Lines starting with '#' are comments; the first line is also taken as the header when it
+    does not start with a number, as the files carry one header line.
+    """
     if not path.is_file():
         raise FileError(f"{path}: {what} file not found", path=str(path))
     try:
@@ -98,11 +102,17 @@ def _read_rows(path: Path, columns: int, what: str) -> list[tuple[int, list[str]
     except (OSError, UnicodeDecodeError) as err:
         raise FileError(f"{path}: cannot read {what} file ({err})", path=str(path)) from None
     rows = []
+    first = True
     for number, raw in enumerate(text.splitlines(), start=1):
         stripped = raw.strip()
-        if not stripped or stripped.startswith("#"):
+        if not stripped:
+            continue
+        is_first, first = first, False
+        if stripped.startswith("#"):
             continue
         tokens = stripped.replace(",", " ").split()
+        if is_first and _is_header(tokens[0]):
+            continue  # the header line, written without '#'
         if len(tokens) != columns:
             raise ParseError(
                 f"{path}:{number}: expected {columns} value(s) per line ({what}), found {len(tokens)}",
@@ -112,6 +122,15 @@ def _read_rows(path: Path, columns: int, what: str) -> list[tuple[int, list[str]
             )
         rows.append((number, tokens))
     return rows
+
+
+def _is_header(token: str) -> bool:
+    """Whether the first token of a file's first data line is a word rather than a number."""
+    try:
+        Decimal(token)
+    except InvalidOperation:
+        return True
+    return False
 
 
 def _read_times_us(path: Path, what: str, *, strictly_increasing: bool) -> npt.NDArray[np.int64]:
