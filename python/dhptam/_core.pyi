@@ -11,12 +11,16 @@ __all__ = [
     "Camera",
     "Config",
     "RectifiedStereo",
+    "Simulator",
     "StereoRig",
     "__version__",
     "_data_address",
     "_log_from_rust",
     "_reset_log_cache",
     "_triangulate",
+    "sim_builtin_trajectory",
+    "sim_file_trajectory",
+    "sim_profile_segments",
     "thread_count",
 ]
 __version__: str
@@ -175,3 +179,36 @@ def thread_count() -> int: ...
 def _data_address(array: _ArrayLike) -> int: ...
 def _reset_log_cache() -> None: ...
 def _log_from_rust(level: str, message: str) -> None: ...
+
+_EventArrays = tuple[
+    npt.NDArray[np.uint16], npt.NDArray[np.uint16], npt.NDArray[np.int64], npt.NDArray[np.int8]
+]
+
+@final
+class Simulator:
+    """The events+frames simulator (desk room, four-camera rig, lighting profile)."""
+
+    def __new__(
+        cls,
+        cameras: list[Camera],
+        imu_from_cam: list[SE3],
+        photos: list[npt.NDArray[np.uint8]],
+        trajectory_t_ns: npt.NDArray[np.int64],
+        trajectory_poses: _ArrayLike,
+        profile: str,
+        duration_ns: int,
+        seed: int,
+        config: Config | None = None,
+    ) -> Simulator: ...
+    def frame_pair(self, t_ns: int) -> tuple[int, npt.NDArray[np.uint8], npt.NDArray[np.uint8]]: ...
+    def events_until(self, t_ns: int) -> tuple[_EventArrays, _EventArrays]: ...
+    def render(self, camera: int, t_ns: int) -> npt.NDArray[np.float32]: ...
+    def world_from_cam(self, camera: int, t_ns: npt.NDArray[np.int64]) -> _FloatArray: ...
+    def world_from_body(self, t_ns: npt.NDArray[np.int64]) -> _FloatArray: ...
+    def illumination(self, t_ns: int) -> float: ...
+    @property
+    def render_count(self) -> int: ...
+
+def sim_builtin_trajectory(name: str, duration_ns: int) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
+def sim_file_trajectory(path: str | Any, fmt: str) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
+def sim_profile_segments(profile: str) -> list[tuple[str, float, float]]: ...

@@ -28,6 +28,59 @@ def _config_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def _simulate_command(args: argparse.Namespace) -> int:
+    from .sim import simulate
+
+    config = _core.Config.from_file(Path(args.config)) if args.config else None
+    summary = simulate(
+        args.out,
+        preset=args.preset,
+        name=args.name,
+        seed=args.seed,
+        duration_s=args.duration,
+        profile=args.profile,
+        trajectory=args.trajectory,
+        config=config,
+        overwrite=args.overwrite,
+        progress=not args.quiet,
+    )
+    sys.stdout.write(
+        f"{summary.path}: {summary.frames} frame pairs, {summary.events_left} + {summary.events_right} "
+        f"events, {summary.duration_ns / 1e9:.2f} s simulated in {summary.seconds:.1f} s\n"
+    )
+    return 0
+
+
+def _add_simulate_command(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    from .sim.presets import DEFAULT_PRESET, MOTIONS, PRESETS, PROFILES, describe_presets
+
+    simulate = sub.add_parser(
+        "simulate",
+        help="simulate a stereo events+frames sequence with ground truth (TUM-VIE layout)",
+        description=(
+            "Ray-cast a textured desk room for a TUM-VIE-like rig (stereo frames + stereo events) "
+            "and write the sequence in the TUM-VIE layout with its ground truth."
+        ),
+        epilog="presets:\n" + describe_presets(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    simulate.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), help="what to simulate")
+    simulate.add_argument("--out", required=True, metavar="DIR", help="parent folder of the sequence")
+    simulate.add_argument("--name", help="sequence name (default: the preset's)")
+    simulate.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    simulate.add_argument("--duration", type=float, metavar="S", help="duration in seconds")
+    simulate.add_argument("--profile", choices=list(PROFILES), help="lighting profile")
+    simulate.add_argument(
+        "--trajectory",
+        metavar="MOTION|FILE",
+        help=f"built-in motion ({', '.join(MOTIONS)}) or a TUM/CSV trajectory file",
+    )
+    simulate.add_argument("--config", metavar="FILE", help="TOML configuration ([sim] section)")
+    simulate.add_argument("--overwrite", action="store_true", help="replace an existing sequence")
+    simulate.add_argument("--quiet", action="store_true", help="no progress bar")
+    simulate.set_defaults(func=_simulate_command)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``dhptam`` command."""
     parser = argparse.ArgumentParser(
@@ -51,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     group.add_argument("--check", metavar="FILE", help="validate FILE and print the resolved configuration")
     config.set_defaults(func=_config_command)
+    _add_simulate_command(sub)
     return parser
 
 

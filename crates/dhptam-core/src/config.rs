@@ -131,6 +131,53 @@ config_section! {
     }
 }
 
+config_section! {
+    /// The events+frames simulator (`dhptam simulate`).
+    SimConfig {
+        /// Frame rate of the stereo frame cameras, Hz.
+        fps: f64 = 20.0,
+        /// Renders averaged over each frame's exposure (motion blur).
+        blur_samples: u32 = 3,
+        /// Nominal ON contrast threshold C+ (change of log intensity).
+        contrast_on: f64 = 0.2,
+        /// Nominal OFF contrast threshold C- (change of log intensity, positive).
+        contrast_off: f64 = 0.2,
+        /// Standard deviation of the per-pixel thresholds around C+/C- (mismatch).
+        contrast_sigma: f64 = 0.03,
+        /// Refractory period of an event pixel, microseconds.
+        refractory_us: f64 = 100.0,
+        /// Background-activity rate of a pixel at the reference intensity, Hz; it grows as
+        /// sqrt(reference / intensity) in darker pixels (capped at 30x).
+        noise_rate_hz: f64 = 0.1,
+        /// Intensity (illumination x reflectance) at which the noise rate is noise_rate_hz.
+        noise_reference_intensity: f64 = 0.5,
+        /// Offset added to the intensity before its logarithm (the pixel's dark level).
+        log_eps: f64 = 0.0002,
+        /// Largest per-pixel log-intensity change allowed between two event-camera renders.
+        max_log_step: f64 = 1.0,
+        /// Shortest interval between event-camera renders, microseconds.
+        min_render_step_us: f64 = 2000.0,
+        /// Longest interval between event-camera renders, microseconds.
+        max_render_step_us: f64 = 10000.0,
+        /// Shortest frame exposure, milliseconds.
+        min_exposure_ms: f64 = 1.0,
+        /// Longest frame exposure, milliseconds.
+        max_exposure_ms: f64 = 20.0,
+        /// Exposure of the first frame, milliseconds.
+        initial_exposure_ms: f64 = 4.0,
+        /// Mean 8-bit level the auto-exposure aims at.
+        ae_target_mean: f64 = 110.0,
+        /// Fraction of the (log) exposure correction applied per frame, in (0, 1]; lower lags more.
+        ae_rate: f64 = 0.3,
+        /// Photo-electrons per second per unit intensity.
+        sensitivity_e_per_s: f64 = 1500000.0,
+        /// Full-well capacity in electrons (maps to 255).
+        full_well_e: f64 = 10000.0,
+        /// Read noise, electrons RMS.
+        read_noise_e: f64 = 5.0,
+    }
+}
+
 impl LogConfig {
     fn check(&self) -> Result<()> {
         Ok(())
@@ -183,6 +230,86 @@ impl TriangulationConfig {
     }
 }
 
+impl SimConfig {
+    fn check(&self) -> Result<()> {
+        let positive = [
+            ("sim.fps", self.fps),
+            ("sim.contrast_on", self.contrast_on),
+            ("sim.contrast_off", self.contrast_off),
+            (
+                "sim.noise_reference_intensity",
+                self.noise_reference_intensity,
+            ),
+            ("sim.log_eps", self.log_eps),
+            ("sim.max_log_step", self.max_log_step),
+            ("sim.min_render_step_us", self.min_render_step_us),
+            ("sim.min_exposure_ms", self.min_exposure_ms),
+            ("sim.ae_target_mean", self.ae_target_mean),
+            ("sim.ae_rate", self.ae_rate),
+            ("sim.sensitivity_e_per_s", self.sensitivity_e_per_s),
+            ("sim.full_well_e", self.full_well_e),
+        ];
+        for (key, value) in positive {
+            check(
+                key,
+                value > 0.0 && value.is_finite(),
+                "a positive number",
+                value,
+            )?;
+        }
+        let non_negative = [
+            ("sim.contrast_sigma", self.contrast_sigma),
+            ("sim.refractory_us", self.refractory_us),
+            ("sim.noise_rate_hz", self.noise_rate_hz),
+            ("sim.read_noise_e", self.read_noise_e),
+        ];
+        for (key, value) in non_negative {
+            check(
+                key,
+                value >= 0.0 && value.is_finite(),
+                "a number >= 0",
+                value,
+            )?;
+        }
+        check(
+            "sim.blur_samples",
+            self.blur_samples >= 1,
+            "at least 1",
+            self.blur_samples,
+        )?;
+        check(
+            "sim.max_render_step_us",
+            self.max_render_step_us >= self.min_render_step_us,
+            "at least min_render_step_us",
+            self.max_render_step_us,
+        )?;
+        check(
+            "sim.max_exposure_ms",
+            self.max_exposure_ms >= self.min_exposure_ms,
+            "at least min_exposure_ms",
+            self.max_exposure_ms,
+        )?;
+        check(
+            "sim.initial_exposure_ms",
+            (self.min_exposure_ms..=self.max_exposure_ms).contains(&self.initial_exposure_ms),
+            "a value between min_exposure_ms and max_exposure_ms",
+            self.initial_exposure_ms,
+        )?;
+        check(
+            "sim.ae_rate",
+            self.ae_rate <= 1.0,
+            "a value in (0, 1]",
+            self.ae_rate,
+        )?;
+        check(
+            "sim.ae_target_mean",
+            self.ae_target_mean < 255.0,
+            "a level below 255",
+            self.ae_target_mean,
+        )
+    }
+}
+
 fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> {
     if ok {
         Ok(())
@@ -221,6 +348,8 @@ config_root! {
     rectification: RectificationConfig,
     /// `[triangulation]`
     triangulation: TriangulationConfig,
+    /// `[sim]`
+    sim: SimConfig,
 }
 
 impl Config {

@@ -5,11 +5,13 @@
 //!
 //! Modules:
 //! - [`geometry`]: SO(3)/SE(3), camera models, stereo rectification, triangulation.
+//! - [`sim`]: the stereo events+frames simulator (ray casting, ESIM events, frame sensor).
 //! - [`config`]: typed, documented, TOML-backed configuration of every stage.
 //! - [`error`]: the error type shared by the whole core.
 
 pub mod config;
 pub mod error;
 pub mod geometry;
+pub mod sim;
 
 pub use error::{Error, Result};

@@ -12,6 +12,7 @@ mod arrays;
 mod config;
 mod errors;
 mod geometry;
+mod sim;
 mod stereo;
 
 use std::sync::{Mutex, OnceLock};
@@ -66,6 +67,10 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<stereo::PyStereoRig>()?;
     m.add_class::<stereo::PyRectifiedStereo>()?;
     m.add_function(wrap_pyfunction!(stereo::_triangulate, m)?)?;
+    m.add_class::<sim::PySimulator>()?;
+    m.add_function(wrap_pyfunction!(sim::sim_builtin_trajectory, m)?)?;
+    m.add_function(wrap_pyfunction!(sim::sim_file_trajectory, m)?)?;
+    m.add_function(wrap_pyfunction!(sim::sim_profile_segments, m)?)?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
