@@ -12,6 +12,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
+use crate::events::PolarityMode;
 
 /// What every configuration section provides to [`Config`].
 trait Section {
@@ -131,6 +132,25 @@ config_section! {
     }
 }
 
+config_section! {
+    /// Event representations (E3CT, SPEC-NOTES §3 and docs/E3CT.md).
+    EventsConfig {
+        /// Sharpness α of the E3CT decay kernel exp(−α((a − η/2)/(η/6))²), a the event's age
+        /// at the end of its window in ms; the paper uses 0.5.
+        alpha: f64 = 0.5,
+        /// Span η of the decay kernel in milliseconds (peak at age η/2); the paper uses 30.
+        eta_ms: f64 = 30.0,
+        /// Temporal channels of the E3CT (3 in the paper: a synthetic RGB image), 2 to 64.
+        channels: u32 = 3,
+        /// "both": ON and OFF events share the channels (the paper); "split": ON events fill
+        /// the first `channels` channels and OFF events the next ones (ablations).
+        polarity: PolarityMode = PolarityMode::Both,
+        /// Each channel is divided by this percentile of its non-zero values (pooled over the
+        /// left and right tensors of a stereo window) and clipped to [0, 1]; in (0, 100].
+        normalise_percentile: f64 = 99.0,
+    }
+}
+
 impl LogConfig {
     fn check(&self) -> Result<()> {
         Ok(())
@@ -183,6 +203,35 @@ impl TriangulationConfig {
     }
 }
 
+impl EventsConfig {
+    fn check(&self) -> Result<()> {
+        check(
+            "events.alpha",
+            self.alpha.is_finite() && self.alpha > 0.0,
+            "a positive number",
+            self.alpha,
+        )?;
+        check(
+            "events.eta_ms",
+            self.eta_ms.is_finite() && self.eta_ms > 0.0,
+            "a positive span in milliseconds",
+            self.eta_ms,
+        )?;
+        check(
+            "events.channels",
+            (2..=64).contains(&self.channels),
+            "between 2 and 64",
+            self.channels,
+        )?;
+        check(
+            "events.normalise_percentile",
+            self.normalise_percentile > 0.0 && self.normalise_percentile <= 100.0,
+            "a percentile in (0, 100]",
+            self.normalise_percentile,
+        )
+    }
+}
+
 fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> {
     if ok {
         Ok(())
@@ -221,6 +270,8 @@ config_root! {
     rectification: RectificationConfig,
     /// `[triangulation]`
     triangulation: TriangulationConfig,
+    /// `[events]`
+    events: EventsConfig,
 }
 
 impl Config {

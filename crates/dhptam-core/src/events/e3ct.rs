@@ -1,0 +1,335 @@
+//! The Event 3-Channel Tensor (E3CT) of DH-PTAM (paper eqs. 3–4, SPEC-NOTES §3).
+//!
+//! For a window `[t_s, t_e)` of `Δ = t_e − t_s` nanoseconds and `B` channels (3 in the paper),
+//! an event `(x, y, t, p)` adds to pixel `(x, y)`:
+//!
+//! ```text
+//! a    = (t_e − t) / 1 ms                       age of the event at the end of the window
+//! V1   = exp(−α ((a − η/2) / (η/6))²)           decay kernel, α = 0.5, η = 30 ms
+//! τ    = (t − t_s) / Δ ∈ [0, 1)                 normalised time inside the window
+//! s    = τ (B − 1),  i = ⌊s⌋,  f = s − i
+//! E[y, x, i]     += V1 (1 − f)                  trilinear (tent) temporal voting:
+//! E[y, x, i + 1] += V1 f                        max(0, 1 − |s − j|) for channel j
+//! ```
+//!
+//! The age counts from the end of the window (the fusion time t_f): the kernel then weighs
+//! an event by how long before the fused frame it fired, the same way for every window
+//! length; `docs/E3CT.md` gives the full reasoning. Both polarities add to the same channels
+//! ([`PolarityMode::Both`]); [`PolarityMode::Split`] keeps ON events in channels `0..B` and
+//! OFF events in `B..2B`, for ablations.
+//!
+//! [`channel_scales`] and [`apply_scales`] normalise each channel to `[0, 1]` by a high
+//! percentile of its non-zero values; computing the scales once over the left and right
+//! tensors together and applying them to both keeps the synthetic colours of the two cameras
+//! identical for the same scene.
+//!
+//! Determinism: accumulation in `f32` depends on the order of the additions, so every pixel
+//! receives its events in input (time) order, whatever the number of threads. With more than
+//! one rayon thread the events are first distributed, in order, into bands of image rows
+//! (a stable bucket sort), and each band is accumulated by one task; with one thread the
+//! events are accumulated directly. Both give bit-identical tensors.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::window::EventSlice;
+use crate::config::EventsConfig;
+use crate::error::{Error, Result};
+
+/// How polarities map to channels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PolarityMode {
+    /// ON and OFF events add to the same `B` channels (the paper's E3CT).
+    Both,
+    /// ON events (p = 1) fill channels `0..B`, OFF events (p = 0) channels `B..2B`.
+    Split,
+}
+
+/// Parameters of the E3CT.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct E3ctParams {
+    /// Sharpness α of the decay kernel (0.5 in the paper).
+    pub alpha: f64,
+    /// Span η of the decay kernel, milliseconds (30 in the paper): the kernel peaks at an age
+    /// of η/2 with standard deviation η/6 (for α = 0.5).
+    pub eta_ms: f64,
+    /// Temporal channels B per polarity group (3 in the paper), at least 2.
+    pub channels: usize,
+    /// Whether polarities share channels or get their own.
+    pub polarity: PolarityMode,
+}
+
+impl Default for E3ctParams {
+    fn default() -> Self {
+        Self::from(&EventsConfig::default())
+    }
+}
+
+impl From<&EventsConfig> for E3ctParams {
+    fn from(config: &EventsConfig) -> Self {
+        Self {
+            alpha: config.alpha,
+            eta_ms: config.eta_ms,
+            channels: config.channels as usize,
+            polarity: config.polarity,
+        }
+    }
+}
+
+impl E3ctParams {
+    /// Channels of the output image: `B`, or `2B` with [`PolarityMode::Split`].
+    pub fn output_channels(&self) -> usize {
+        match self.polarity {
+            PolarityMode::Both => self.channels,
+            PolarityMode::Split => 2 * self.channels,
+        }
+    }
+
+    fn check(&self) -> Result<()> {
+        if !(self.alpha.is_finite() && self.alpha > 0.0) {
+            return Err(Error::invalid("alpha", "a positive number", self.alpha));
+        }
+        if !(self.eta_ms.is_finite() && self.eta_ms > 0.0) {
+            return Err(Error::invalid(
+                "eta_ms",
+                "a positive span in milliseconds",
+                self.eta_ms,
+            ));
+        }
+        if !(2..=64).contains(&self.channels) {
+            return Err(Error::invalid(
+                "channels",
+                "between 2 and 64 temporal channels",
+                self.channels,
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The per-event weights: decay kernel and temporal voting, for one window.
+struct Kernel {
+    t_start_ns: i64,
+    t_end_ns: i64,
+    span_ns: f64,
+    alpha: f64,
+    half_eta_ms: f64,
+    inv_sigma_ms: f64,
+    last_bin: f64,
+    max_lower: usize,
+}
+
+impl Kernel {
+    fn new(params: &E3ctParams, t_start_ns: i64, t_end_ns: i64) -> Self {
+        Self {
+            t_start_ns,
+            t_end_ns,
+            span_ns: (t_end_ns - t_start_ns) as f64,
+            alpha: params.alpha,
+            half_eta_ms: 0.5 * params.eta_ms,
+            inv_sigma_ms: 6.0 / params.eta_ms,
+            last_bin: (params.channels - 1) as f64,
+            max_lower: params.channels - 2,
+        }
+    }
+
+    /// `(i, V1 (1 − f), V1 f)` for an event at `t_ns` inside the window.
+    #[inline]
+    fn weights(&self, t_ns: i64) -> (usize, f32, f32) {
+        let age_ms = (self.t_end_ns - t_ns) as f64 * 1e-6;
+        let z = (age_ms - self.half_eta_ms) * self.inv_sigma_ms;
+        let v1 = (-self.alpha * z * z).exp();
+        let s = (t_ns - self.t_start_ns) as f64 / self.span_ns * self.last_bin;
+        // τ < 1, so ⌊s⌋ ≤ B − 2; the min guards rounding for windows of months.
+        let i = (s as usize).min(self.max_lower);
+        let f = s - i as f64;
+        (i, (v1 * (1.0 - f)) as f32, (v1 * f) as f32)
+    }
+}
+
+/// Adds the events `indices` (in the order given) to `rows`, an image slice starting at image
+/// row `row0`. Consecutive events with the same time reuse the weights (event cameras stamp
+/// in microseconds, so a window holds many events per stamp); the weights do not depend on
+/// the order, so the result does not either, beyond the order of the additions.
+fn accumulate(
+    events: &EventSlice<'_>,
+    indices: impl Iterator<Item = usize>,
+    kernel: &Kernel,
+    params: &E3ctParams,
+    width: usize,
+    row0: usize,
+    rows: &mut [f32],
+) {
+    let c = params.output_channels();
+    let off_offset = match params.polarity {
+        PolarityMode::Both => 0,
+        PolarityMode::Split => params.channels,
+    };
+    let mut last_t = i64::MIN;
+    let mut w = (0usize, 0f32, 0f32);
+    for k in indices {
+        let t = events.t_ns[k];
+        if t != last_t {
+            w = kernel.weights(t);
+            last_t = t;
+        }
+        let pixel = (usize::from(events.y[k]) - row0) * width + usize::from(events.x[k]);
+        let base = pixel * c + w.0 + if events.p[k] == 0 { off_offset } else { 0 };
+        rows[base] += w.1;
+        rows[base + 1] += w.2;
+    }
+}
+
+/// Below this many events the bucket sort costs more than it saves.
+const PARALLEL_MIN_EVENTS: usize = 1 << 15;
+
+/// The E3CT of one window: a `height × width × C` image (channel fastest, `C` from
+/// [`E3ctParams::output_channels`]), not normalised (see [`channel_scales`]).
+///
+/// The window is validated first (see [`EventSlice::validate`]): pixels outside the image,
+/// polarities other than 0/1, times outside `[t_start_ns, t_end_ns)` or decreasing times are
+/// [`Error::InvalidInput`] naming the first offending event. An empty window gives zeros.
+pub fn e3ct(
+    events: &EventSlice<'_>,
+    width: u32,
+    height: u32,
+    t_start_ns: i64,
+    t_end_ns: i64,
+    params: &E3ctParams,
+) -> Result<Vec<f32>> {
+    params.check()?;
+    events.validate(width, height, t_start_ns, t_end_ns)?;
+    let (w, h) = (width as usize, height as usize);
+    let c = params.output_channels();
+    let mut out = vec![0f32; w * h * c];
+    let kernel = Kernel::new(params, t_start_ns, t_end_ns);
+    let n = events.len();
+    let threads = rayon::current_num_threads();
+    if threads == 1 || n < PARALLEL_MIN_EVENTS || u32::try_from(n).is_err() {
+        accumulate(events, 0..n, &kernel, params, w, 0, &mut out);
+        return Ok(out);
+    }
+
+    // Stable bucket sort of the event indices into bands of rows: chunk k of the input puts
+    // its events, in order, into lists[k][band]; reading the lists chunk after chunk gives
+    // each band its events in input order.
+    let bands = (4 * threads).min(h);
+    let rows_per_band = h.div_ceil(bands);
+    let bands = h.div_ceil(rows_per_band);
+    let band_of_row: Vec<u16> = (0..h).map(|r| (r / rows_per_band) as u16).collect();
+    let chunk_len = n.div_ceil(4 * threads);
+    let lists: Vec<Vec<Vec<u32>>> = (0..n.div_ceil(chunk_len))
+        .into_par_iter()
+        .map(|chunk| {
+            let range = chunk * chunk_len..((chunk + 1) * chunk_len).min(n);
+            let mut per_band = vec![Vec::with_capacity(range.len() / bands + 16); bands];
+            for k in range {
+                per_band[usize::from(band_of_row[usize::from(events.y[k])])].push(k as u32);
+            }
+            per_band
+        })
+        .collect();
+    out.par_chunks_mut(rows_per_band * w * c)
+        .enumerate()
+        .for_each(|(band, rows)| {
+            let indices = lists
+                .iter()
+                .flat_map(|per_band| per_band[band].iter().map(|&k| k as usize));
+            accumulate(
+                events,
+                indices,
+                &kernel,
+                params,
+                w,
+                band * rows_per_band,
+                rows,
+            );
+        });
+    Ok(out)
+}
+
+/// Normalisation scale of each of `channels` channels: the `percentile`-th percentile
+/// (nearest rank) of the channel's non-zero values, pooled over all `tensors`.
+///
+/// Pass the left and right E3CT of one stereo window together and apply the result to both
+/// with [`apply_scales`]: the same scale for the same channel keeps their colours equal.
+/// Only non-zero values count because most pixels see no event in a short window; a
+/// percentile over all pixels would be 0. A channel without any non-zero value gets scale 1
+/// (it stays 0).
+pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> Result<Vec<f32>> {
+    if channels == 0 {
+        return Err(Error::invalid("channels", "at least one channel", 0));
+    }
+    if !(percentile > 0.0 && percentile <= 100.0) {
+        return Err(Error::invalid(
+            "percentile",
+            "a percentile in (0, 100]",
+            percentile,
+        ));
+    }
+    for (k, t) in tensors.iter().enumerate() {
+        if t.len() % channels != 0 {
+            return Err(Error::invalid(
+                format!("tensors[{k}]"),
+                format!("a multiple of {channels} values (H × W × {channels})"),
+                format!("{} values", t.len()),
+            ));
+        }
+        if let Some(i) = t.iter().position(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                format!("tensors[{k}][{i}]"),
+                "a finite value",
+                t[i],
+            ));
+        }
+    }
+    Ok((0..channels)
+        .into_par_iter()
+        .map(|ch| {
+            let mut values: Vec<f32> = tensors
+                .iter()
+                .flat_map(|t| t.iter().skip(ch).step_by(channels))
+                .copied()
+                .filter(|&v| v != 0.0)
+                .map(f32::abs)
+                .collect();
+            if values.is_empty() {
+                return 1.0;
+            }
+            let rank = ((percentile / 100.0 * values.len() as f64).ceil() as usize)
+                .clamp(1, values.len())
+                - 1;
+            let (_, &mut scale, _) = values.select_nth_unstable_by(rank, f32::total_cmp);
+            scale
+        })
+        .collect())
+}
+
+/// Divides each channel by its scale and clips to `[0, 1]`, in place.
+pub fn apply_scales(tensor: &mut [f32], scales: &[f32]) -> Result<()> {
+    let c = scales.len();
+    if let Some(i) = scales.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(Error::invalid(
+            format!("scales[{i}]"),
+            "a positive finite scale",
+            scales[i],
+        ));
+    }
+    if c == 0 || tensor.len() % c != 0 {
+        return Err(Error::invalid(
+            "tensor",
+            format!("a multiple of {c} values (one scale per channel)"),
+            format!("{} values", tensor.len()),
+        ));
+    }
+    let inv: Vec<f32> = scales.iter().map(|s| 1.0 / s).collect();
+    tensor.par_chunks_mut(c * 4096).for_each(|block| {
+        for pixel in block.chunks_exact_mut(c) {
+            for (v, k) in pixel.iter_mut().zip(&inv) {
+                *v = (*v * k).clamp(0.0, 1.0);
+            }
+        }
+    });
+    Ok(())
+}
