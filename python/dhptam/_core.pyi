@@ -13,10 +13,16 @@ __all__ = [
     "RectifiedStereo",
     "StereoRig",
     "__version__",
+    "_count_image",
     "_data_address",
+    "_e3ct",
+    "_e3ct_apply_scales",
+    "_e3ct_scales",
     "_log_from_rust",
     "_reset_log_cache",
+    "_time_surface",
     "_triangulate",
+    "_voxel_grid",
     "thread_count",
 ]
 __version__: str
@@ -175,3 +181,50 @@ def thread_count() -> int: ...
 def _data_address(array: _ArrayLike) -> int: ...
 def _reset_log_cache() -> None: ...
 def _log_from_rust(level: str, message: str) -> None: ...
+
+_U16 = npt.NDArray[np.uint16]
+_I64 = npt.NDArray[np.int64]
+_I8 = npt.NDArray[np.int8]
+_F32 = npt.NDArray[np.float32]
+
+def _e3ct(
+    x: _U16,
+    y: _U16,
+    t_ns: _I64,
+    p: _I8,
+    width: int,
+    height: int,
+    t_start_ns: int,
+    t_end_ns: int,
+    alpha: float,
+    eta_ms: float,
+    channels: int,
+    polarity: str,
+) -> _F32: ...
+def _count_image(
+    x: _U16,
+    y: _U16,
+    t_ns: _I64,
+    p: _I8,
+    width: int,
+    height: int,
+    t_start_ns: int,
+    t_end_ns: int,
+    polarity: str,
+) -> _F32: ...
+def _time_surface(
+    x: _U16,
+    y: _U16,
+    t_ns: _I64,
+    p: _I8,
+    width: int,
+    height: int,
+    t_start_ns: int,
+    t_end_ns: int,
+    tau_ms: float,
+) -> _F32: ...
+def _voxel_grid(
+    x: _U16, y: _U16, t_ns: _I64, p: _I8, width: int, height: int, t_start_ns: int, t_end_ns: int, bins: int
+) -> _F32: ...
+def _e3ct_scales(tensors: list[_F32], percentile: float) -> list[float]: ...
+def _e3ct_apply_scales(tensor: _F32, scales: list[float]) -> _F32: ...

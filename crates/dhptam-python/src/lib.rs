@@ -11,6 +11,7 @@
 mod arrays;
 mod config;
 mod errors;
+mod events;
 mod geometry;
 mod stereo;
 
@@ -66,6 +67,12 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<stereo::PyStereoRig>()?;
     m.add_class::<stereo::PyRectifiedStereo>()?;
     m.add_function(wrap_pyfunction!(stereo::_triangulate, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_e3ct, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_count_image, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_time_surface, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_voxel_grid, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_e3ct_scales, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_e3ct_apply_scales, m)?)?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
