@@ -91,8 +91,7 @@ fn bench(c: &mut Criterion) {
         b.iter(|| {
             pool.install(|| {
                 black_box(
-                    count_image(black_box(&events), W, H, 0, SPAN_NS, PolarityMode::Both)
-                        .unwrap(),
+                    count_image(black_box(&events), W, H, 0, SPAN_NS, PolarityMode::Both).unwrap(),
                 )
             })
         })

@@ -13,6 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::events::PolarityMode;
+use crate::fusion::FusionMode;
 
 /// What every configuration section provides to [`Config`].
 trait Section {
@@ -151,6 +152,31 @@ config_section! {
     }
 }
 
+config_section! {
+    /// Spatial hybridisation and fusion of events and frames (SPEC-NOTES §4).
+    FusionConfig {
+        /// "fusion" (frames and events with the online β), "frames" (β = 0) or "events" (β = 1).
+        mode: FusionMode = FusionMode::Fusion,
+        /// Upper bound on β (the paper's example caps it at 0.3); 1 leaves it uncapped.
+        beta_max: f64 = 1.0,
+        /// Pixels at or below this 8-bit value count as under-exposed.
+        dark_level: f64 = 20.0,
+        /// Pixels at or above this 8-bit value count as over-exposed.
+        bright_level: f64 = 235.0,
+        /// A frame with more than this fraction of under/over-exposed pixels switches the
+        /// fusion to the DVS-biased mode.
+        max_clipped_fraction: f64 = 0.5,
+        /// A frame on which fewer features than this are detected switches the fusion to the
+        /// DVS-biased mode.
+        min_features: u32 = 100,
+        /// Depth in metres of the plane the event pixels are warped through; 0 warps at
+        /// infinity (rotation only).
+        plane_depth_m: f64 = 0.0,
+        /// Constant pixel offset δP_align (x, y) added after the event→frame warp.
+        align_px: [f64; 2] = [0.0, 0.0],
+    }
+}
+
 impl LogConfig {
     fn check(&self) -> Result<()> {
         Ok(())
@@ -232,6 +258,43 @@ impl EventsConfig {
     }
 }
 
+impl FusionConfig {
+    fn check(&self) -> Result<()> {
+        check(
+            "fusion.beta_max",
+            (0.0..=1.0).contains(&self.beta_max),
+            "a weight in [0, 1]",
+            self.beta_max,
+        )?;
+        check(
+            "fusion.dark_level/bright_level",
+            (0.0..=255.0).contains(&self.dark_level)
+                && (0.0..=255.0).contains(&self.bright_level)
+                && self.dark_level < self.bright_level,
+            "0 <= dark_level < bright_level <= 255",
+            format!("{} and {}", self.dark_level, self.bright_level),
+        )?;
+        check(
+            "fusion.max_clipped_fraction",
+            (0.0..=1.0).contains(&self.max_clipped_fraction),
+            "a fraction in [0, 1]",
+            self.max_clipped_fraction,
+        )?;
+        check(
+            "fusion.plane_depth_m",
+            self.plane_depth_m.is_finite() && self.plane_depth_m >= 0.0,
+            "0 (infinity) or a positive depth",
+            self.plane_depth_m,
+        )?;
+        check(
+            "fusion.align_px",
+            self.align_px.iter().all(|v| v.is_finite()),
+            "two finite offsets",
+            format!("{:?}", self.align_px),
+        )
+    }
+}
+
 fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> {
     if ok {
         Ok(())
@@ -272,6 +335,8 @@ config_root! {
     triangulation: TriangulationConfig,
     /// `[events]`
     events: EventsConfig,
+    /// `[fusion]`
+    fusion: FusionConfig,
 }
 
 impl Config {

@@ -6,12 +6,14 @@
 //! Modules:
 //! - [`geometry`]: SO(3)/SE(3), camera models, stereo rectification, triangulation.
 //! - [`events`]: event windows, the E3CT and baseline event representations.
+//! - [`fusion`]: event rectification, event→frame warp, online β fusion.
 //! - [`config`]: typed, documented, TOML-backed configuration of every stage.
 //! - [`error`]: the error type shared by the whole core.
 
 pub mod config;
 pub mod error;
 pub mod events;
+pub mod fusion;
 pub mod geometry;
 
 pub use error::{Error, Result};

@@ -121,7 +121,7 @@ fn empty_window_gives_zeros_and_identical_streams_identical_tensors() {
     apply_scales(&mut r, &scales).unwrap();
     assert_eq!(l, r);
     assert!(l.iter().all(|v| (0.0..=1.0).contains(v)));
-    assert!(l.iter().any(|&v| v == 1.0));
+    assert!(l.contains(&1.0));
 }
 
 #[test]

@@ -71,15 +71,41 @@ impl<'a> EventSlice<'a> {
     /// and that times never decrease; the error names the first offending event.
     pub fn validate(&self, width: u32, height: u32, t_start_ns: i64, t_end_ns: i64) -> Result<()> {
         check_frame(width, height, t_start_ns, t_end_ns)?;
-        let bad = (0..self.len())
+        // Chunks are checked with a plain loop each (cheap enough to vectorise); the first
+        // chunk holding a bad event is found in parallel, the event inside it sequentially.
+        let n = self.len();
+        let bad = (0..n.div_ceil(CHECK_CHUNK))
             .into_par_iter()
-            .with_min_len(CHECK_CHUNK)
-            .find_first(|&i| {
-                u32::from(self.x[i]) >= width
-                    || u32::from(self.y[i]) >= height
-                    || !(0..=1).contains(&self.p[i])
-                    || !(t_start_ns..t_end_ns).contains(&self.t_ns[i])
-                    || (i > 0 && self.t_ns[i] < self.t_ns[i - 1])
+            .find_map_first(|chunk| {
+                let start = chunk * CHECK_CHUNK;
+                let end = (start + CHECK_CHUNK).min(n);
+                let mut ok = true;
+                let mut previous = if start == 0 {
+                    i64::MIN
+                } else {
+                    self.t_ns[start - 1]
+                };
+                for k in start..end {
+                    let t = self.t_ns[k];
+                    ok &= u32::from(self.x[k]) < width
+                        && u32::from(self.y[k]) < height
+                        && (0..=1).contains(&self.p[k])
+                        && t >= t_start_ns
+                        && t < t_end_ns
+                        && t >= previous;
+                    previous = t;
+                }
+                if ok {
+                    return None;
+                }
+                (start..end).find(|&k| {
+                    let t = self.t_ns[k];
+                    u32::from(self.x[k]) >= width
+                        || u32::from(self.y[k]) >= height
+                        || !(0..=1).contains(&self.p[k])
+                        || !(t_start_ns..t_end_ns).contains(&t)
+                        || (k > 0 && t < self.t_ns[k - 1])
+                })
             });
         let Some(i) = bad else { return Ok(()) };
         let (x, y, t, p) = (self.x[i], self.y[i], self.t_ns[i], self.p[i]);
