@@ -4,12 +4,16 @@
 //! stamps, as TUM-VIE stores them, at pixels drawn from a seeded generator: 70 % along a few
 //! hundred random line segments (edges moving through the scene), 30 % uniform noise. The
 //! count image is measured in the same run as the cheapest possible accumulation.
+//! `e3ct` allocates its output and scratch memory per call; `e3ct_into_reused` reuses both,
+//! as a stream of windows does.
 
 use std::hint::black_box;
 use std::time::Duration;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use dhptam_core::events::{count_image, e3ct, E3ctParams, EventSlice, PolarityMode};
+use dhptam_core::events::{
+    count_image, e3ct, e3ct_into, E3ctParams, E3ctWorkspace, EventSlice, PolarityMode,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -80,6 +84,33 @@ fn bench(c: &mut Criterion) {
                 pool.install(|| {
                     black_box(e3ct(black_box(&events), W, H, 0, SPAN_NS, &params).unwrap())
                 })
+            })
+        });
+    }
+    // A stream of windows: the output and the scratch memory are reused from window to window.
+    for threads in [1, 2] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .expect("thread pool");
+        let mut workspace = E3ctWorkspace::default();
+        let mut out = vec![0f32; (W * H * 3) as usize];
+        group.bench_function(format!("e3ct_into_reused/{threads}_threads"), |b| {
+            b.iter(|| {
+                pool.install(|| {
+                    e3ct_into(
+                        black_box(&events),
+                        W,
+                        H,
+                        0,
+                        SPAN_NS,
+                        &params,
+                        &mut workspace,
+                        &mut out,
+                    )
+                    .unwrap()
+                });
+                black_box(&out);
             })
         });
     }

@@ -242,3 +242,50 @@ fn baselines_on_hand_computed_windows() {
     assert!(voxel_grid(&s, 2, 2, 0, 20 * MS, 1).is_err());
     assert!(time_surface(&s, 1, 2, 0, 20 * MS, 10.0).is_err());
 }
+
+#[test]
+fn reused_workspace_and_output_give_the_same_tensors() {
+    use dhptam_core::events::{e3ct_into, E3ctWorkspace};
+    let params = E3ctParams::default();
+    let mut workspace = E3ctWorkspace::default();
+    let mut out = vec![f32::NAN; 320 * 240 * 3];
+    // Windows of different sizes one after another, on different thread counts: leftovers of
+    // a previous window must not leak into the next.
+    for (n, seed, threads) in [(200_000, 1, 2), (50_000, 2, 1), (0, 3, 2), (120_000, 4, 3)] {
+        let ev = Events::random(n, 320, 240, 50 * MS, seed);
+        let fresh = e3ct(&ev.slice(), 320, 240, 0, 50 * MS, &params).unwrap();
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(|| {
+                e3ct_into(
+                    &ev.slice(),
+                    320,
+                    240,
+                    0,
+                    50 * MS,
+                    &params,
+                    &mut workspace,
+                    &mut out,
+                )
+                .unwrap()
+            });
+        assert!(fresh
+            .iter()
+            .zip(&out)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+    let ev = Events::random(10, 320, 240, 50 * MS, 5);
+    assert!(e3ct_into(
+        &ev.slice(),
+        320,
+        240,
+        0,
+        50 * MS,
+        &params,
+        &mut workspace,
+        &mut out[1..]
+    )
+    .is_err());
+}

@@ -156,6 +156,7 @@ type Packed = u64;
 
 /// What the bucket pass produces for one chunk of the input: the weights `(i, V1 (1 − f),
 /// V1 f)` of each distinct time stamp, and the chunk's events per band.
+#[derive(Debug, Default)]
 struct Chunk {
     weights: Vec<(u32, f32, f32)>,
     per_band: Vec<Vec<Packed>>,
@@ -182,15 +183,53 @@ pub fn e3ct(
     t_end_ns: i64,
     params: &E3ctParams,
 ) -> Result<Vec<f32>> {
+    let mut out = vec![0f32; width as usize * height as usize * params.output_channels()];
+    let mut workspace = E3ctWorkspace::default();
+    e3ct_into(
+        events,
+        width,
+        height,
+        t_start_ns,
+        t_end_ns,
+        params,
+        &mut workspace,
+        &mut out,
+    )?;
+    Ok(out)
+}
+
+/// Scratch memory of [`e3ct_into`], kept between windows so that a stream of windows does not
+/// fault in fresh pages for every one (page faults cost more than the accumulation itself).
+#[derive(Debug, Default)]
+pub struct E3ctWorkspace {
+    chunks: Vec<Chunk>,
+}
+
+/// [`e3ct()`] writing into `out` (`height × width × C` values, overwritten) with reusable
+/// scratch memory; results are identical.
+#[allow(clippy::too_many_arguments)]
+pub fn e3ct_into(
+    events: &EventSlice<'_>,
+    width: u32,
+    height: u32,
+    t_start_ns: i64,
+    t_end_ns: i64,
+    params: &E3ctParams,
+    workspace: &mut E3ctWorkspace,
+    out: &mut [f32],
+) -> Result<()> {
     params.check()?;
     events.validate(width, height, t_start_ns, t_end_ns)?;
     let (w, h) = (width as usize, height as usize);
     let c = params.output_channels();
-    let mut out = vec![0f32; w * h * c];
-    let n = events.len();
-    if n == 0 {
-        return Ok(out);
+    if out.len() != w * h * c {
+        return Err(Error::invalid(
+            "out",
+            format!("{h}×{w}×{c} values"),
+            format!("{} values", out.len()),
+        ));
     }
+    let n = events.len();
     if u32::try_from(n).is_err() {
         return Err(Error::invalid(
             "events",
@@ -217,42 +256,47 @@ pub fn e3ct(
         })
         .collect();
     let chunk_len = n.div_ceil(threads).max(1 << 12);
-    let chunks: Vec<Chunk> = (0..n.div_ceil(chunk_len))
-        .into_par_iter()
-        .map(|chunk| {
-            let range = chunk * chunk_len..((chunk + 1) * chunk_len).min(n);
+    let n_chunks = n.div_ceil(chunk_len);
+    let chunks = &mut workspace.chunks;
+    chunks.resize_with(n_chunks.max(chunks.len()), Chunk::default);
+    chunks[..n_chunks]
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(index, chunk)| {
+            let range = index * chunk_len..((index + 1) * chunk_len).min(n);
+            chunk.weights.clear();
+            chunk.per_band.resize_with(bands, Vec::new);
+            chunk.per_band.truncate(bands);
             // Exact list sizes first: over-allocating would fault in pages never used.
             let mut counts = vec![0usize; bands];
             for &y in &events.y[range.clone()] {
                 counts[row_place[usize::from(y)].0 as usize] += 1;
             }
-            let mut per_band: Vec<Vec<Packed>> =
-                counts.iter().map(|&k| Vec::with_capacity(k)).collect();
-            let mut table: Vec<(u32, f32, f32)> = Vec::new();
+            for (list, &k) in chunk.per_band.iter_mut().zip(&counts) {
+                list.clear();
+                list.reserve_exact(k);
+            }
             let mut last_t = i64::MIN;
             for k in range {
                 let t = events.t_ns[k];
                 if t != last_t {
                     let (i, w0, w1) = kernel.weights(t);
-                    table.push((i as u32, w0, w1));
+                    chunk.weights.push((i as u32, w0, w1));
                     last_t = t;
                 }
                 let (band, row_offset) = row_place[usize::from(events.y[k])];
                 let polarity = if events.p[k] == 0 { off_offset } else { 0 };
                 let local = row_offset as usize + usize::from(events.x[k]) * c + polarity;
-                let id = (table.len() - 1) as u64;
-                per_band[band as usize].push((id << 32) | local as u64);
+                let id = (chunk.weights.len() - 1) as u64;
+                chunk.per_band[band as usize].push((id << 32) | local as u64);
             }
-            Chunk {
-                weights: table,
-                per_band,
-            }
-        })
-        .collect();
+        });
+    let chunks = &workspace.chunks[..n_chunks];
     out.par_chunks_mut(rows_per_band * row_values)
         .enumerate()
         .for_each(|(band, rows)| {
-            for chunk in &chunks {
+            rows.fill(0.0);
+            for chunk in chunks {
                 for &packed in &chunk.per_band[band] {
                     let (i, w0, w1) = chunk.weights[(packed >> 32) as usize];
                     let at = (packed & 0xFFFF_FFFF) as usize + i as usize;
@@ -261,7 +305,7 @@ pub fn e3ct(
                 }
             }
         });
-    Ok(out)
+    Ok(())
 }
 
 /// Normalisation scale of each of `channels` channels: the `percentile`-th percentile
