@@ -235,3 +235,27 @@ def test_fusion_windows_follow_mid_exposure_times(tmp_path):
         (1, 12 * MS, 64 * MS, 12 * MS, 64 * MS - MS // 2, 104),
         (2, 64 * MS, 111 * MS, 64 * MS, 111 * MS - MS // 2, 94),
     ]
+
+
+def test_events_and_fusion_config_sections():
+    from dhptam.errors import ConfigError
+
+    cfg = Config.from_toml(
+        '[events]\npolarity = "split"\nchannels = 4\n[fusion]\nmode = "events"\nbeta_max = 0.3\n'
+    )
+    assert cfg.to_dict()["events"]["polarity"] == "split" and cfg.to_dict()["fusion"]["beta_max"] == 0.3
+    for bad, key in [
+        ("[events]\nchannels = 1\n", "events.channels"),
+        ("[events]\nnormalise_percentile = 0.0\n", "events.normalise_percentile"),
+        ("[fusion]\nbeta_max = 2.0\n", "fusion.beta_max"),
+        ("[fusion]\ndark_level = 240.0\n", "fusion.dark_level/bright_level"),
+        ('[fusion]\nmode = "both"\n', "both"),
+    ]:
+        with pytest.raises(ConfigError, match=key):
+            Config.from_toml(bad)
+    x, y, t, p = random_window(2_000, 32, 24, 20 * MS, seed=8)
+    from dhptam.datasets import EventWindow
+
+    w = EventWindow(x=x, y=y, t_ns=t, p=p)
+    left, _, scales = stereo_e3ct(w, w, width=32, height=24, t_start_ns=0, t_end_ns=20 * MS, config=cfg)
+    assert left.shape == (24, 32, 8) and scales.shape == (8,)

@@ -25,7 +25,8 @@
 //!
 //! Determinism: accumulation in `f32` depends on the order of the additions, so every pixel
 //! receives its events in input (time) order, whatever the number of threads (see [`e3ct()`]
-//! for how: a stable bucket sort into bands of rows, then one task per band).
+//! for how: on several threads a stable bucket sort into bands of rows, then one task per
+//! band).
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -169,7 +170,8 @@ struct Chunk {
 /// polarities other than 0/1, times outside `[t_start_ns, t_end_ns)` or decreasing times are
 /// [`Error::InvalidInput`] naming the first offending event. An empty window gives zeros.
 ///
-/// Two passes, both parallel. (1) The input is cut into one chunk per thread; each chunk
+/// On one rayon thread the events are added straight into the image, in input order. On
+/// more, two passes, both parallel. (1) The input is cut into one chunk per thread; each chunk
 /// computes the weights once per distinct time stamp (event cameras stamp in µs, so a busy
 /// window has tens of events per stamp) into its own table and distributes its events, in
 /// order, into per-band lists. (2) Each band of rows (small enough to stay in cache) reads the
@@ -243,6 +245,27 @@ pub fn e3ct_into(
         PolarityMode::Split => params.channels,
     };
     let threads = rayon::current_num_threads();
+    if threads == 1 {
+        // One pass straight into the image: on one core the bucket sort costs more than the
+        // cache misses it saves. Same order of additions per pixel, so the same bits.
+        out.fill(0.0);
+        let mut last_t = i64::MIN;
+        let mut weights = (0usize, 0f32, 0f32);
+        for k in 0..n {
+            let t = events.t_ns[k];
+            if t != last_t {
+                weights = kernel.weights(t);
+                last_t = t;
+            }
+            let polarity = if events.p[k] == 0 { off_offset } else { 0 };
+            let at = (usize::from(events.y[k]) * w + usize::from(events.x[k])) * c
+                + polarity
+                + weights.0;
+            out[at] += weights.1;
+            out[at + 1] += weights.2;
+        }
+        return Ok(());
+    }
     let row_values = w * c;
     let rows_per_band = (BAND_BYTES / (4 * row_values)).clamp(1, h);
     let bands = h.div_ceil(rows_per_band);
