@@ -13,16 +13,19 @@ __all__ = [
     "RectifiedStereo",
     "StereoRig",
     "__version__",
+    "_choose_beta",
     "_count_image",
     "_data_address",
     "_e3ct",
     "_e3ct_apply_scales",
     "_e3ct_scales",
+    "_fuse",
     "_log_from_rust",
     "_reset_log_cache",
     "_time_surface",
     "_triangulate",
     "_voxel_grid",
+    "_warp_to_frame",
     "thread_count",
 ]
 __version__: str
@@ -228,3 +231,18 @@ def _voxel_grid(
 ) -> _F32: ...
 def _e3ct_scales(tensors: list[_F32], percentile: float) -> list[float]: ...
 def _e3ct_apply_scales(tensor: _F32, scales: list[float]) -> _F32: ...
+def _choose_beta(
+    frame: npt.NDArray[np.uint8], feature_count: int | None = None, config: Config | None = None
+) -> tuple[str, float, float, float]: ...
+def _fuse(frame: npt.NDArray[np.uint8], e3ct: _F32, beta: float) -> npt.NDArray[np.uint8]: ...
+def _warp_to_frame(
+    image: _F32,
+    k_event: _ArrayLike,
+    k_frame: _ArrayLike,
+    frame_from_event: SE3,
+    depth_m: float,
+    align_px: _ArrayLike,
+    width: int,
+    height: int,
+    pixels: _ArrayLike | None = None,
+) -> tuple[_F32, _FloatArray | None]: ...

@@ -12,6 +12,7 @@ mod arrays;
 mod config;
 mod errors;
 mod events;
+mod fusion;
 mod geometry;
 mod stereo;
 
@@ -73,6 +74,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(events::_voxel_grid, m)?)?;
     m.add_function(wrap_pyfunction!(events::_e3ct_scales, m)?)?;
     m.add_function(wrap_pyfunction!(events::_e3ct_apply_scales, m)?)?;
+    m.add_function(wrap_pyfunction!(fusion::_choose_beta, m)?)?;
+    m.add_function(wrap_pyfunction!(fusion::_fuse, m)?)?;
+    m.add_function(wrap_pyfunction!(fusion::_warp_to_frame, m)?)?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
