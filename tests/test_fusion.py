@@ -82,3 +82,43 @@ def test_warp_moves_event_pixels_onto_the_frame_pixel_of_the_same_point():
     assert uv_shift is not None and np.allclose(uv_shift[0] - uv[0], [1.0, -2.0])
     with pytest.raises(InputError):
         warp_to_frame(image, k_event, k_frame, frame_from_event, width=80, height=60, depth_m=-1.0)
+
+
+def test_fused_dark_frame_yields_more_features_than_the_frame_alone():
+    import cv2
+
+    from dhptam.events import e3ct, normalise
+
+    # A nearly black frame with squares 3 grey levels brighter: too faint for FAST.
+    dark = np.full((120, 160), 4, np.uint8)
+    squares = [(20, 20), (20, 90), (70, 40), (70, 110)]
+    for r, c in squares:
+        dark[r : r + 30, c : c + 30] = 7
+    # Events fire along the squares' edges over a 50 ms window (an edge sweeping the sensor).
+    ys, xs = [], []
+    for r, c in squares:
+        for k in range(30):
+            ys += [r, r + 29, r + k, r + k]
+            xs += [c + k, c + k, c, c + 29]
+    n = len(xs)
+    t = np.linspace(0, 49_000_000, n).astype(np.int64)
+    order = np.random.default_rng(1).permutation(n)
+    img = e3ct(
+        np.array(xs)[order],
+        np.array(ys)[order],
+        t,
+        np.ones(n, np.int8),
+        width=160,
+        height=120,
+        t_start_ns=0,
+        t_end_ns=50_000_000,
+        eta_ms=100.0,
+    )
+    (events,), _ = normalise(img)
+    decision = choose_beta(dark)
+    assert decision.bias == "dvs"
+    fused = fuse(dark, events, decision.beta)
+    fast = cv2.FastFeatureDetector_create(threshold=20)
+    on_frame = len(fast.detect(dark))
+    on_fused = len(fast.detect(fused))
+    assert on_frame == 0 and on_fused >= 4 * len(squares), (on_frame, on_fused)
