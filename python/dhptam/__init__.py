@@ -10,7 +10,8 @@ Quick look::
 Modules: :mod:`dhptam.geometry` (Lie groups, cameras, rectification, triangulation),
 :mod:`dhptam.errors` (exceptions), :mod:`dhptam.logs` (logging), :mod:`dhptam.cli` (the
 ``dhptam`` command), :mod:`dhptam.datasets` (sequences, TUM-VIE reader and writer; imported
-on its own, as it loads h5py).
+on its own, as it loads h5py), :mod:`dhptam.events` (E3CT, baseline event images, fusion
+windows).
 """
 
 from __future__ import annotations

@@ -14,10 +14,19 @@ __all__ = [
     "Simulator",
     "StereoRig",
     "__version__",
+    "_choose_beta",
+    "_count_image",
     "_data_address",
+    "_e3ct",
+    "_e3ct_apply_scales",
+    "_e3ct_scales",
+    "_fuse",
     "_log_from_rust",
     "_reset_log_cache",
+    "_time_surface",
     "_triangulate",
+    "_voxel_grid",
+    "_warp_to_frame",
     "sim_builtin_trajectory",
     "sim_file_trajectory",
     "sim_profile_segments",
@@ -212,3 +221,65 @@ class Simulator:
 def sim_builtin_trajectory(name: str, duration_ns: int) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
 def sim_file_trajectory(path: str | Any, fmt: str) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
 def sim_profile_segments(profile: str) -> list[tuple[str, float, float]]: ...
+
+_U16 = npt.NDArray[np.uint16]
+_I64 = npt.NDArray[np.int64]
+_I8 = npt.NDArray[np.int8]
+_F32 = npt.NDArray[np.float32]
+
+def _e3ct(
+    x: _U16,
+    y: _U16,
+    t_ns: _I64,
+    p: _I8,
+    width: int,
+    height: int,
+    t_start_ns: int,
+    t_end_ns: int,
+    alpha: float,
+    eta_ms: float,
+    channels: int,
+    polarity: str,
+) -> _F32: ...
+def _count_image(
+    x: _U16,
+    y: _U16,
+    t_ns: _I64,
+    p: _I8,
+    width: int,
+    height: int,
+    t_start_ns: int,
+    t_end_ns: int,
+    polarity: str,
+) -> _F32: ...
+def _time_surface(
+    x: _U16,
+    y: _U16,
+    t_ns: _I64,
+    p: _I8,
+    width: int,
+    height: int,
+    t_start_ns: int,
+    t_end_ns: int,
+    tau_ms: float,
+) -> _F32: ...
+def _voxel_grid(
+    x: _U16, y: _U16, t_ns: _I64, p: _I8, width: int, height: int, t_start_ns: int, t_end_ns: int, bins: int
+) -> _F32: ...
+def _e3ct_scales(tensors: list[_F32], percentile: float) -> list[float]: ...
+def _e3ct_apply_scales(tensor: _F32, scales: list[float]) -> _F32: ...
+def _choose_beta(
+    frame: npt.NDArray[np.uint8], feature_count: int | None = None, config: Config | None = None
+) -> tuple[str, float, float, float]: ...
+def _fuse(frame: npt.NDArray[np.uint8], e3ct: _F32, beta: float) -> npt.NDArray[np.uint8]: ...
+def _warp_to_frame(
+    image: _F32,
+    k_event: _ArrayLike,
+    k_frame: _ArrayLike,
+    frame_from_event: SE3,
+    depth_m: float,
+    align_px: _ArrayLike,
+    width: int,
+    height: int,
+    pixels: _ArrayLike | None = None,
+) -> tuple[_F32, _FloatArray | None]: ...

@@ -12,6 +12,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
+use crate::events::PolarityMode;
+use crate::fusion::FusionMode;
 
 /// What every configuration section provides to [`Config`].
 trait Section {
@@ -178,6 +180,50 @@ config_section! {
     }
 }
 
+config_section! {
+    /// Event representations (E3CT, SPEC-NOTES §3 and docs/E3CT.md).
+    EventsConfig {
+        /// Sharpness α of the E3CT decay kernel exp(−α((a − η/2)/(η/6))²), a the event's age
+        /// at the end of its window in ms; the paper uses 0.5.
+        alpha: f64 = 0.5,
+        /// Span η of the decay kernel in milliseconds (peak at age η/2); the paper uses 30.
+        eta_ms: f64 = 30.0,
+        /// Temporal channels of the E3CT (3 in the paper: a synthetic RGB image), 2 to 64.
+        channels: u32 = 3,
+        /// "both": ON and OFF events share the channels (the paper); "split": ON events fill
+        /// the first `channels` channels and OFF events the next ones (ablations).
+        polarity: PolarityMode = PolarityMode::Both,
+        /// Each channel is divided by this percentile of its non-zero values (pooled over the
+        /// left and right tensors of a stereo window) and clipped to [0, 1]; in (0, 100].
+        normalise_percentile: f64 = 99.0,
+    }
+}
+
+config_section! {
+    /// Spatial hybridisation and fusion of events and frames (SPEC-NOTES §4).
+    FusionConfig {
+        /// "fusion" (frames and events with the online β), "frames" (β = 0) or "events" (β = 1).
+        mode: FusionMode = FusionMode::Fusion,
+        /// Upper bound on β (the paper's example caps it at 0.3); 1 leaves it uncapped.
+        beta_max: f64 = 1.0,
+        /// Pixels at or below this 8-bit value count as under-exposed.
+        dark_level: f64 = 20.0,
+        /// Pixels at or above this 8-bit value count as over-exposed.
+        bright_level: f64 = 235.0,
+        /// A frame with more than this fraction of under/over-exposed pixels switches the
+        /// fusion to the DVS-biased mode.
+        max_clipped_fraction: f64 = 0.5,
+        /// A frame on which fewer features than this are detected switches the fusion to the
+        /// DVS-biased mode.
+        min_features: u32 = 100,
+        /// Depth in metres of the plane the event pixels are warped through; 0 warps at
+        /// infinity (rotation only).
+        plane_depth_m: f64 = 0.0,
+        /// Constant pixel offset δP_align (x, y) added after the event→frame warp.
+        align_px: [f64; 2] = [0.0, 0.0],
+    }
+}
+
 impl LogConfig {
     fn check(&self) -> Result<()> {
         Ok(())
@@ -310,6 +356,72 @@ impl SimConfig {
     }
 }
 
+impl EventsConfig {
+    fn check(&self) -> Result<()> {
+        check(
+            "events.alpha",
+            self.alpha.is_finite() && self.alpha > 0.0,
+            "a positive number",
+            self.alpha,
+        )?;
+        check(
+            "events.eta_ms",
+            self.eta_ms.is_finite() && self.eta_ms > 0.0,
+            "a positive span in milliseconds",
+            self.eta_ms,
+        )?;
+        check(
+            "events.channels",
+            (2..=64).contains(&self.channels),
+            "between 2 and 64",
+            self.channels,
+        )?;
+        check(
+            "events.normalise_percentile",
+            self.normalise_percentile > 0.0 && self.normalise_percentile <= 100.0,
+            "a percentile in (0, 100]",
+            self.normalise_percentile,
+        )
+    }
+}
+
+impl FusionConfig {
+    fn check(&self) -> Result<()> {
+        check(
+            "fusion.beta_max",
+            (0.0..=1.0).contains(&self.beta_max),
+            "a weight in [0, 1]",
+            self.beta_max,
+        )?;
+        check(
+            "fusion.dark_level/bright_level",
+            (0.0..=255.0).contains(&self.dark_level)
+                && (0.0..=255.0).contains(&self.bright_level)
+                && self.dark_level < self.bright_level,
+            "0 <= dark_level < bright_level <= 255",
+            format!("{} and {}", self.dark_level, self.bright_level),
+        )?;
+        check(
+            "fusion.max_clipped_fraction",
+            (0.0..=1.0).contains(&self.max_clipped_fraction),
+            "a fraction in [0, 1]",
+            self.max_clipped_fraction,
+        )?;
+        check(
+            "fusion.plane_depth_m",
+            self.plane_depth_m.is_finite() && self.plane_depth_m >= 0.0,
+            "0 (infinity) or a positive depth",
+            self.plane_depth_m,
+        )?;
+        check(
+            "fusion.align_px",
+            self.align_px.iter().all(|v| v.is_finite()),
+            "two finite offsets",
+            format!("{:?}", self.align_px),
+        )
+    }
+}
+
 fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> {
     if ok {
         Ok(())
@@ -348,6 +460,10 @@ config_root! {
     rectification: RectificationConfig,
     /// `[triangulation]`
     triangulation: TriangulationConfig,
+    /// `[events]`
+    events: EventsConfig,
+    /// `[fusion]`
+    fusion: FusionConfig,
     /// `[sim]`
     sim: SimConfig,
 }

@@ -6,11 +6,15 @@
 //! Modules:
 //! - [`geometry`]: SO(3)/SE(3), camera models, stereo rectification, triangulation.
 //! - [`sim`]: the stereo events+frames simulator (ray casting, ESIM events, frame sensor).
+//! - [`events`]: event windows, the E3CT and baseline event representations.
+//! - [`fusion`]: event rectification, event→frame warp, online β fusion.
 //! - [`config`]: typed, documented, TOML-backed configuration of every stage.
 //! - [`error`]: the error type shared by the whole core.
 
 pub mod config;
 pub mod error;
+pub mod events;
+pub mod fusion;
 pub mod geometry;
 pub mod sim;
 

@@ -11,6 +11,8 @@
 mod arrays;
 mod config;
 mod errors;
+mod events;
+mod fusion;
 mod geometry;
 mod sim;
 mod stereo;
@@ -71,6 +73,15 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sim::sim_builtin_trajectory, m)?)?;
     m.add_function(wrap_pyfunction!(sim::sim_file_trajectory, m)?)?;
     m.add_function(wrap_pyfunction!(sim::sim_profile_segments, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_e3ct, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_count_image, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_time_surface, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_voxel_grid, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_e3ct_scales, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_e3ct_apply_scales, m)?)?;
+    m.add_function(wrap_pyfunction!(fusion::_choose_beta, m)?)?;
+    m.add_function(wrap_pyfunction!(fusion::_fuse, m)?)?;
+    m.add_function(wrap_pyfunction!(fusion::_warp_to_frame, m)?)?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;

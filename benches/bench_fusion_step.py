@@ -1,0 +1,67 @@
+"""One stereo fusion step at TUM-VIE resolution, stage by stage (dhptam only, no baseline).
+
+Per side: E3CT of 1 M events at 1280×720 (the event cameras), the left and right tensors
+normalised with shared scales, each warped into its 1024×1024 frame camera through a plane at
+2 m, β chosen from the frame, and the blend. Not included: rectifying the events through the
+lookup table (``fusion::EventRectifier`` has no Python binding yet). The paper reports
+25–30 ms for the stereo E3CT and 439–521 ms for the fusion on a CPU; the issue's target for the
+whole step is ≤ 10 ms on 2 cores.
+
+    python benches/bench_fusion_step.py [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+from bench_e3ct import SPAN_NS, H, W, window
+
+from dhptam import SE3, SO3, _core
+from dhptam.events import e3ct, normalise
+from dhptam.fusion import choose_beta, fuse, warp_to_frame
+
+FRAME = 1024
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=5)
+    args = ap.parse_args()
+    sides = [window(1_000_000, seed) for seed in (1, 2)]
+    frames = [np.random.default_rng(s).integers(20, 230, (FRAME, FRAME), dtype=np.uint8) for s in (3, 4)]
+    k_event, k_frame = [1050.0, 1050.0, 640.0, 360.0], [750.0, 750.0, 511.5, 511.5]
+    frame_from_event = SE3(SO3.exp([0.01, -0.015, 0.004]), [0.02, 0.03, 0.0])
+    stages: dict[str, list[float]] = {
+        k: [] for k in ("2 × e3ct", "normalise", "2 × warp", "β + fuse", "total")
+    }
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        raw = [e3ct(*s, width=W, height=H, t_start_ns=0, t_end_ns=SPAN_NS) for s in sides]
+        t1 = time.perf_counter()
+        tensors, _ = normalise(*raw)
+        t2 = time.perf_counter()
+        warped = [
+            warp_to_frame(t, k_event, k_frame, frame_from_event, width=FRAME, height=FRAME, depth_m=2.0)[0]
+            for t in tensors
+        ]
+        t3 = time.perf_counter()
+        for f, d in zip(frames, warped, strict=True):
+            fuse(f, d, choose_beta(f).beta)
+        t4 = time.perf_counter()
+        for key, dt in zip(stages, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t4 - t0), strict=True):
+            stages[key].append(dt)
+    print(
+        f"stereo fusion step, events 2 × 1 M at {W}×{H}, frames {FRAME}×{FRAME}, rayon threads "
+        f"{_core.thread_count()}, load average {os.getloadavg()[0]:.1f}; best of {args.repeats}"
+    )
+    print("| stage | time [ms] |")
+    print("|---|---:|")
+    for key, times in stages.items():
+        print(f"| {key} | {min(times) * 1e3:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

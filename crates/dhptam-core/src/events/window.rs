@@ -1,0 +1,157 @@
+//! A borrowed window of events and its validation.
+//!
+//! Events arrive as four parallel arrays (TUM-VIE's `/events/{x,y,t,p}` after the time
+//! conversion to nanoseconds). [`EventSlice`] borrows them, so a window cut from a large
+//! recording is never copied.
+//!
+//! Handling of bad input (the same for every representation): the whole window is checked
+//! before any output is written, and the first offending event is reported as
+//! [`Error::InvalidInput`] naming its index. Out-of-range pixel coordinates, polarities other
+//! than 0/1, times outside `[t_start_ns, t_end_ns)` and decreasing times are errors, not
+//! skipped: each of them means the caller cut the window wrongly, mixed two cameras or
+//! passed the wrong calibration, and silently dropping events would hide that.
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+
+/// Events checked per rayon task during validation.
+const CHECK_CHUNK: usize = 1 << 16;
+
+/// The events of one camera in a time window, as borrowed parallel arrays.
+#[derive(Clone, Copy, Debug)]
+pub struct EventSlice<'a> {
+    /// Column of each event, pixels.
+    pub x: &'a [u16],
+    /// Row of each event, pixels.
+    pub y: &'a [u16],
+    /// Time of each event, nanoseconds, non-decreasing.
+    pub t_ns: &'a [i64],
+    /// Polarity of each event: 1 brighter (ON), 0 darker (OFF).
+    pub p: &'a [i8],
+}
+
+impl<'a> EventSlice<'a> {
+    /// Borrows four arrays of equal length.
+    pub fn new(x: &'a [u16], y: &'a [u16], t_ns: &'a [i64], p: &'a [i8]) -> Result<Self> {
+        let n = t_ns.len();
+        for (name, len) in [("x", x.len()), ("y", y.len()), ("p", p.len())] {
+            if len != n {
+                return Err(Error::invalid(
+                    name,
+                    format!("{n} entries, as many as t_ns"),
+                    format!("{len} entries"),
+                ));
+            }
+        }
+        Ok(Self { x, y, t_ns, p })
+    }
+
+    /// Number of events.
+    pub fn len(&self) -> usize {
+        self.t_ns.len()
+    }
+
+    /// Whether the window holds no event.
+    pub fn is_empty(&self) -> bool {
+        self.t_ns.is_empty()
+    }
+
+    /// Events `range` of this window (still borrowed).
+    pub fn sub(&self, range: std::ops::Range<usize>) -> EventSlice<'a> {
+        EventSlice {
+            x: &self.x[range.clone()],
+            y: &self.y[range.clone()],
+            t_ns: &self.t_ns[range.clone()],
+            p: &self.p[range],
+        }
+    }
+
+    /// Checks every event against the image size and the window `[t_start_ns, t_end_ns)`,
+    /// and that times never decrease; the error names the first offending event.
+    pub fn validate(&self, width: u32, height: u32, t_start_ns: i64, t_end_ns: i64) -> Result<()> {
+        check_frame(width, height, t_start_ns, t_end_ns)?;
+        // Chunks are checked with a plain loop each (cheap enough to vectorise); the first
+        // chunk holding a bad event is found in parallel, the event inside it sequentially.
+        let n = self.len();
+        let bad = (0..n.div_ceil(CHECK_CHUNK))
+            .into_par_iter()
+            .find_map_first(|chunk| {
+                let start = chunk * CHECK_CHUNK;
+                let end = (start + CHECK_CHUNK).min(n);
+                let mut ok = true;
+                let mut previous = if start == 0 {
+                    i64::MIN
+                } else {
+                    self.t_ns[start - 1]
+                };
+                for k in start..end {
+                    let t = self.t_ns[k];
+                    ok &= u32::from(self.x[k]) < width
+                        && u32::from(self.y[k]) < height
+                        && (0..=1).contains(&self.p[k])
+                        && t >= t_start_ns
+                        && t < t_end_ns
+                        && t >= previous;
+                    previous = t;
+                }
+                if ok {
+                    return None;
+                }
+                (start..end).find(|&k| {
+                    let t = self.t_ns[k];
+                    u32::from(self.x[k]) >= width
+                        || u32::from(self.y[k]) >= height
+                        || !(0..=1).contains(&self.p[k])
+                        || !(t_start_ns..t_end_ns).contains(&t)
+                        || (k > 0 && t < self.t_ns[k - 1])
+                })
+            });
+        let Some(i) = bad else { return Ok(()) };
+        let (x, y, t, p) = (self.x[i], self.y[i], self.t_ns[i], self.p[i]);
+        Err(if u32::from(x) >= width || u32::from(y) >= height {
+            Error::invalid(
+                format!("event {i} (x, y)"),
+                format!("a pixel inside the {width}×{height} image"),
+                format!("({x}, {y})"),
+            )
+        } else if !(0..=1).contains(&p) {
+            Error::invalid(format!("event {i} p"), "polarity 0 or 1", p)
+        } else if !(t_start_ns..t_end_ns).contains(&t) {
+            Error::invalid(
+                format!("event {i} t_ns"),
+                format!("a time in the window [{t_start_ns}, {t_end_ns}) ns"),
+                t,
+            )
+        } else {
+            Error::invalid(
+                format!("event {i} t_ns"),
+                format!(
+                    "times sorted in non-decreasing order (event {} is at {} ns)",
+                    i - 1,
+                    self.t_ns[i - 1]
+                ),
+                t,
+            )
+        })
+    }
+}
+
+/// Checks the image size and the window bounds shared by every representation.
+pub(crate) fn check_frame(width: u32, height: u32, t_start_ns: i64, t_end_ns: i64) -> Result<()> {
+    if width == 0 || height == 0 {
+        return Err(Error::invalid(
+            "width/height",
+            "a positive image size",
+            format!("{width}×{height}"),
+        ));
+    }
+    if t_end_ns <= t_start_ns {
+        return Err(Error::invalid(
+            "t_end_ns",
+            format!("a window end after t_start_ns = {t_start_ns}"),
+            t_end_ns,
+        ));
+    }
+    Ok(())
+}

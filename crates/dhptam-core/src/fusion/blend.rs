@@ -1,0 +1,158 @@
+//! Online β and the fusion `f(C, D) = (1 − β) C + β D` (paper eq. 6, SPEC-NOTES §4).
+//!
+//! With `r = mean(C) / max(C)` of the frame:
+//!
+//! ```text
+//! APS-biased (the frame is usable):    β = min(r, 1 − r)   ≤ 1/2
+//! DVS-biased (the frame fails):        β = max(r, 1 − r)   ≥ 1/2
+//! then β = min(β, β_max)
+//! ```
+//!
+//! The frame "fails" when it is under- or over-exposed — more than `max_clipped_fraction` of
+//! its pixels at or below `dark_level` or at or above `bright_level` — or when the caller
+//! reports fewer than `min_features` features detected on it. Modes `frames` and `events` fix
+//! β to 0 and 1.
+
+use serde::{Deserialize, Serialize};
+
+use crate::config::FusionConfig;
+use crate::error::{Error, Result};
+
+/// Which images the front-end feeds to the features.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum FusionMode {
+    /// Frames and events blended with the online β (the paper's default).
+    Fusion,
+    /// Frames only (β = 0).
+    Frames,
+    /// Events only (β = 1).
+    Events,
+}
+
+/// Why β has its value.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Bias {
+    /// The frame is usable: β = min(r, 1 − r).
+    Aps,
+    /// The frame is under/over-exposed or yields too few features: β = max(r, 1 − r).
+    Dvs,
+    /// Mode `frames`: β = 0.
+    FramesOnly,
+    /// Mode `events`: β = 1.
+    EventsOnly,
+}
+
+impl Bias {
+    /// Name used in logs and in Python: "aps", "dvs", "frames", "events".
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Bias::Aps => "aps",
+            Bias::Dvs => "dvs",
+            Bias::FramesOnly => "frames",
+            Bias::EventsOnly => "events",
+        }
+    }
+}
+
+/// The β of one frame with what it was derived from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BetaDecision {
+    /// Weight of the events in the fused image, in [0, 1].
+    pub beta: f64,
+    /// The mode that chose it.
+    pub bias: Bias,
+    /// `mean(C) / max(C)` (0 for a black frame).
+    pub ratio: f64,
+    /// Fraction of pixels at or below `dark_level` or at or above `bright_level`.
+    pub clipped_fraction: f64,
+}
+
+/// Chooses β for an 8-bit frame; `feature_count` is the number of features detected on the
+/// frame alone, when known.
+pub fn choose_beta(
+    frame: &[u8],
+    feature_count: Option<usize>,
+    config: &FusionConfig,
+) -> Result<BetaDecision> {
+    if frame.is_empty() {
+        return Err(Error::invalid(
+            "frame",
+            "at least one pixel",
+            "an empty image",
+        ));
+    }
+    let (mut sum, mut max, mut clipped) = (0u64, 0u8, 0usize);
+    for &v in frame {
+        sum += u64::from(v);
+        max = max.max(v);
+        clipped +=
+            usize::from(f64::from(v) <= config.dark_level || f64::from(v) >= config.bright_level);
+    }
+    let n = frame.len() as f64;
+    let ratio = if max == 0 {
+        0.0
+    } else {
+        sum as f64 / n / f64::from(max)
+    };
+    let clipped_fraction = clipped as f64 / n;
+    let (beta, bias) = match config.mode {
+        FusionMode::Frames => (0.0, Bias::FramesOnly),
+        FusionMode::Events => (1.0, Bias::EventsOnly),
+        FusionMode::Fusion => {
+            let too_few = feature_count.is_some_and(|k| k < config.min_features as usize);
+            if too_few || clipped_fraction > config.max_clipped_fraction {
+                (ratio.max(1.0 - ratio).min(config.beta_max), Bias::Dvs)
+            } else {
+                (ratio.min(1.0 - ratio).min(config.beta_max), Bias::Aps)
+            }
+        }
+    };
+    log::debug!(
+        "fusion: beta = {beta:.3} ({}), r = {ratio:.3}, clipped {clipped_fraction:.3}, features {feature_count:?}",
+        bias.as_str()
+    );
+    Ok(BetaDecision {
+        beta,
+        bias,
+        ratio,
+        clipped_fraction,
+    })
+}
+
+/// The E3CT in the frame's intensity domain: per pixel the largest normalised channel,
+/// in [0, 1] (an edge is bright whatever part of the window it fired in).
+pub fn intensity_from_e3ct(e3ct: &[f32], channels: usize) -> Result<Vec<f32>> {
+    if channels == 0 || e3ct.len() % channels != 0 {
+        return Err(Error::invalid(
+            "e3ct",
+            format!("a multiple of {channels} values"),
+            format!("{} values", e3ct.len()),
+        ));
+    }
+    Ok(e3ct
+        .chunks_exact(channels)
+        .map(|px| px.iter().copied().fold(0.0f32, f32::max).clamp(0.0, 1.0))
+        .collect())
+}
+
+/// `round((1 − β) C + β · 255 · D)` per pixel: frame `C` (8 bit) blended with the event
+/// intensity `D` in [0, 1] (from [`intensity_from_e3ct`] of the warped, normalised E3CT).
+pub fn fuse(frame: &[u8], events: &[f32], beta: f64) -> Result<Vec<u8>> {
+    if frame.len() != events.len() {
+        return Err(Error::invalid(
+            "events",
+            format!("{} pixels, as many as the frame", frame.len()),
+            format!("{} pixels", events.len()),
+        ));
+    }
+    if !(0.0..=1.0).contains(&beta) {
+        return Err(Error::invalid("beta", "a weight in [0, 1]", beta));
+    }
+    let (a, b) = ((1.0 - beta) as f32, (beta * 255.0) as f32);
+    Ok(frame
+        .iter()
+        .zip(events)
+        .map(|(&c, &d)| (a * f32::from(c) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8)
+        .collect())
+}

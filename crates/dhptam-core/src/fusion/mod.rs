@@ -1,0 +1,15 @@
+//! Spatial hybridisation and fusion of events and frames (DH-PTAM eqs. 5–6, SPEC-NOTES §4).
+//!
+//! - [`rectify`]: raw event pixels → pixels of the rectified event camera, through a lookup
+//!   table built once from the calibration.
+//! - [`warp`]: the rectified E3CT → the rectified frame camera, with a real perspective divide
+//!   (a fronto-parallel plane at a given depth, or infinity) plus the constant δP_align.
+//! - [`blend`]: the online β (APS- or DVS-biased) and `f(C, D) = (1 − β) C + β D`.
+
+pub mod blend;
+pub mod rectify;
+pub mod warp;
+
+pub use blend::{choose_beta, fuse, intensity_from_e3ct, BetaDecision, Bias, FusionMode};
+pub use rectify::{EventRectifier, RectifiedEvents};
+pub use warp::{Depth, EventFrameWarp};

@@ -1,0 +1,338 @@
+//! Event rectification, the event→frame warp on a TUM-VIE-like synthetic rig with known
+//! depth, and the online β / fusion.
+
+use dhptam_core::config::{FusionConfig, RectificationConfig};
+use dhptam_core::events::EventSlice;
+use dhptam_core::fusion::{
+    choose_beta, fuse, intensity_from_e3ct, Bias, Depth, EventFrameWarp, EventRectifier, FusionMode,
+};
+use dhptam_core::geometry::{Camera, Projective, RectifiedStereo, Se3, Side, So3, StereoRig};
+use nalgebra::{Vector2, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Frame and event camera pairs; poses `cam_from_rig` with the rig frame at the left frame
+/// camera. The event cameras sit 2–3 cm off the frame cameras and are turned by about 1°.
+struct Rig {
+    frame: [Camera; 2],
+    event: [Camera; 2],
+    frame_from_rig: [Se3; 2],
+    event_from_rig: [Se3; 2],
+}
+
+fn rig() -> Rig {
+    let frame = Camera::new(
+        "kb4",
+        &[750.0, 749.0, 511.0, 507.0, 0.0037, 0.0143, -0.0285, 0.0143],
+        1024,
+        1024,
+    )
+    .unwrap();
+    let event = Camera::new(
+        "kb4",
+        &[1050.0, 1049.0, 641.0, 359.0, -0.02, 0.01, 0.0, 0.0],
+        1280,
+        720,
+    )
+    .unwrap();
+    let turn = So3::exp(&Vector3::new(0.01, -0.015, 0.004));
+    let at = |x: f64, y: f64, rot: So3| Se3::new(rot, Vector3::new(x, y, 0.0)).inverse();
+    Rig {
+        frame: [frame, frame],
+        event: [event, event],
+        frame_from_rig: [at(0.0, 0.0, So3::identity()), at(0.1, 0.0, So3::identity())],
+        event_from_rig: [at(0.02, 0.03, turn), at(0.12, 0.03, turn)],
+    }
+}
+
+fn rectified(cams: &[Camera; 2], from_rig: &[Se3; 2]) -> RectifiedStereo {
+    let stereo = StereoRig {
+        left: cams[0],
+        right: cams[1],
+        right_from_left: from_rig[1] * from_rig[0].inverse(),
+    };
+    RectifiedStereo::new(&stereo, &RectificationConfig::default()).unwrap()
+}
+
+fn rotation(r: So3) -> Se3 {
+    Se3::new(r, Vector3::zeros())
+}
+
+#[test]
+fn warp_puts_event_pixels_on_the_frame_pixels_of_the_same_point() {
+    let rig = rig();
+    let ev_rect = rectified(&rig.event, &rig.event_from_rig);
+    let fr_rect = rectified(&rig.frame, &rig.frame_from_rig);
+    // Rectified event-left frame → rectified frame-left frame.
+    let rect_frame_from_rig = rotation(fr_rect.rect_left_from_left) * rig.frame_from_rig[0];
+    let rect_event_from_rig = rotation(ev_rect.rect_left_from_left) * rig.event_from_rig[0];
+    let frame_from_event = rect_frame_from_rig * rect_event_from_rig.inverse();
+
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let (mut checked, mut worst, mut worst_infinity) = (0, 0.0f64, 0.0f64);
+    for _ in 0..400 {
+        let p_rig = Vector3::new(
+            rng.random_range(-0.6..0.6),
+            rng.random_range(-0.4..0.4),
+            rng.random_range(1.5..4.0),
+        );
+        let p_event = rect_event_from_rig * p_rig;
+        let raw_event = rig.event[0].project(&(rig.event_from_rig[0] * p_rig));
+        let raw_frame = rig.frame[0].project(&(rig.frame_from_rig[0] * p_rig));
+        let (Some(raw_event), Some(raw_frame)) = (raw_event, raw_frame) else {
+            continue;
+        };
+        if !rig.event[0].contains(&raw_event) || !rig.frame[0].contains(&raw_frame) {
+            continue;
+        }
+        let uv_event = ev_rect.rectify_pixel(Side::Left, &raw_event).unwrap();
+        let uv_frame = fr_rect.rectify_pixel(Side::Left, &raw_frame).unwrap();
+        // A fronto-parallel plane through the point: the ground-truth depth of this pixel.
+        let warp = EventFrameWarp::new(
+            ev_rect.pinhole,
+            fr_rect.pinhole,
+            frame_from_event,
+            Depth::Plane { depth_m: p_event.z },
+            Vector2::zeros(),
+        )
+        .unwrap();
+        let got = warp.warp_pixel(&uv_event).unwrap();
+        worst = worst.max((got - uv_frame).norm());
+        let back = warp.unwarp_pixel(&uv_frame).unwrap();
+        assert!((back - uv_event).norm() < 1e-6, "{back} vs {uv_event}");
+        let at_infinity = EventFrameWarp::new(
+            ev_rect.pinhole,
+            fr_rect.pinhole,
+            frame_from_event,
+            Depth::Infinity,
+            Vector2::zeros(),
+        )
+        .unwrap();
+        worst_infinity =
+            worst_infinity.max((at_infinity.warp_pixel(&uv_event).unwrap() - uv_frame).norm());
+        checked += 1;
+    }
+    assert!(checked > 200, "only {checked} points in both views");
+    assert!(worst < 0.5, "warp error {worst} px");
+    assert!(worst < 1e-4, "warp error {worst} px (exact geometry)");
+    // The translation between the cameras matters at 1.5–4 m: ignoring depth is off by pixels.
+    assert!(
+        worst_infinity > 2.0,
+        "infinity warp error only {worst_infinity} px"
+    );
+}
+
+#[test]
+fn alignment_offset_and_image_resampling() {
+    let k_event = dhptam_core::geometry::Pinhole {
+        fx: 500.0,
+        fy: 500.0,
+        cx: 31.5,
+        cy: 23.5,
+    };
+    let k_frame = dhptam_core::geometry::Pinhole {
+        fx: 600.0,
+        fy: 600.0,
+        cx: 40.0,
+        cy: 30.0,
+    };
+    let frame_from_event = Se3::new(
+        So3::exp(&Vector3::new(0.0, 0.01, 0.0)),
+        Vector3::new(0.02, 0.0, 0.0),
+    );
+    let align = Vector2::new(1.5, -0.75);
+    let warp = EventFrameWarp::new(
+        k_event,
+        k_frame,
+        frame_from_event,
+        Depth::Plane { depth_m: 2.0 },
+        align,
+    )
+    .unwrap();
+    let plain = EventFrameWarp::new(
+        k_event,
+        k_frame,
+        frame_from_event,
+        Depth::Plane { depth_m: 2.0 },
+        Vector2::zeros(),
+    )
+    .unwrap();
+    let p = Vector2::new(10.0, 20.0);
+    assert!((warp.warp_pixel(&p).unwrap() - plain.warp_pixel(&p).unwrap() - align).norm() < 1e-12);
+    // The step-by-step eq. 5 and the homography agree.
+    let h = plain.homography() * Vector3::new(p.x, p.y, 1.0);
+    assert!((h.xy() / h.z - plain.warp_pixel(&p).unwrap()).norm() < 1e-9);
+
+    // A 2-channel image linear in (u, v) resamples exactly (bilinear is exact on it).
+    let (w, h) = (64usize, 48usize);
+    let src: Vec<f32> = (0..w * h)
+        .flat_map(|i| [(i % w) as f32, (i / w) as f32])
+        .collect();
+    let dst = warp.warp_image(&src, w, h, 2, 80, 60).unwrap();
+    let mut inside = 0;
+    for v in 0..60 {
+        for u in 0..80 {
+            let q = warp
+                .unwarp_pixel(&Vector2::new(u as f64, v as f64))
+                .unwrap();
+            let px = &dst[(v * 80 + u) * 2..(v * 80 + u) * 2 + 2];
+            if q.x >= 0.0 && q.y >= 0.0 && q.x <= (w - 1) as f64 && q.y <= (h - 1) as f64 {
+                assert!(
+                    (f64::from(px[0]) - q.x).abs() < 1e-3 && (f64::from(px[1]) - q.y).abs() < 1e-3
+                );
+                inside += 1;
+            } else if q.x < -1.0 || q.y < -1.0 || q.x > w as f64 || q.y > h as f64 {
+                assert_eq!(px, [0.0, 0.0]);
+            }
+        }
+    }
+    assert!(inside > 1000, "{inside}");
+    assert!(warp.warp_image(&src, w, h, 3, 80, 60).is_err());
+    assert!(EventFrameWarp::new(
+        k_event,
+        k_frame,
+        frame_from_event,
+        Depth::Plane { depth_m: 0.0 },
+        align
+    )
+    .is_err());
+}
+
+#[test]
+fn event_rectifier_table_matches_per_pixel_rectification() {
+    let rig = rig();
+    let rect = rectified(&rig.event, &rig.event_from_rig);
+    let lut = EventRectifier::new(&rect, Side::Right);
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let mut dropped = 0;
+    for _ in 0..2000 {
+        let (u, v) = (rng.random_range(0..1280u16), rng.random_range(0..720u16));
+        let exact = rect.rectify_pixel(Side::Right, &Vector2::new(f64::from(u), f64::from(v)));
+        match (lut.lookup(u, v), exact) {
+            (Some((x, y)), Some(e)) => {
+                assert_eq!((f64::from(x), f64::from(y)), (e.x.round(), e.y.round()));
+            }
+            (None, e) => {
+                dropped += 1;
+                if let Some(e) = e {
+                    let (x, y) = (e.x.round(), e.y.round());
+                    assert!(
+                        x < 0.0
+                            || y < 0.0
+                            || x >= f64::from(rect.width)
+                            || y >= f64::from(rect.height)
+                    );
+                }
+            }
+            (Some(_), None) => panic!("table has a pixel the model cannot rectify"),
+        }
+    }
+    // balance = 0 crops: some border pixels leave the view, most stay.
+    assert!(dropped > 0 && dropped < 1000, "{dropped}");
+
+    let (x, y, t, p) = (
+        [0u16, 640, 1279],
+        [0u16, 360, 719],
+        [0i64, 1, 2],
+        [1i8, 0, 1],
+    );
+    let events = EventSlice::new(&x, &y, &t, &p).unwrap();
+    let out = lut.apply(&events, 0, 10).unwrap();
+    let centre = lut.lookup(640, 360).unwrap();
+    assert!(out.x.contains(&centre.0) && out.t_ns.contains(&1) && out.len_check());
+    let bad = ([1280u16], [0u16], [0i64], [1i8]);
+    let events = EventSlice::new(&bad.0, &bad.1, &bad.2, &bad.3).unwrap();
+    assert!(lut.apply(&events, 0, 10).is_err());
+}
+
+trait LenCheck {
+    fn len_check(&self) -> bool;
+}
+
+impl LenCheck for dhptam_core::fusion::RectifiedEvents {
+    fn len_check(&self) -> bool {
+        let n = self.t_ns.len();
+        self.x.len() == n && self.y.len() == n && self.p.len() == n
+    }
+}
+
+/// A 64×48 frame: `base + gradient` clipped to 8 bits.
+fn frame(base: f64, gradient: f64) -> Vec<u8> {
+    (0..64 * 48)
+        .map(|i| (base + gradient * f64::from((i % 64) as u32) / 63.0).clamp(0.0, 255.0) as u8)
+        .collect()
+}
+
+fn ratio(f: &[u8]) -> f64 {
+    let max = f64::from(*f.iter().max().unwrap());
+    f.iter().map(|&v| f64::from(v)).sum::<f64>() / f.len() as f64 / max
+}
+
+#[test]
+fn beta_switches_to_dvs_bias_on_dark_and_bright_frames_and_back() {
+    let config = FusionConfig::default();
+    let normal = frame(40.0, 180.0);
+    let dark = frame(0.0, 30.0);
+    let bright = frame(230.0, 25.0);
+    let sequence = [&normal, &dark, &normal, &bright, &normal];
+    let biases: Vec<Bias> = sequence
+        .iter()
+        .map(|f| choose_beta(f, None, &config).unwrap().bias)
+        .collect();
+    assert_eq!(
+        biases,
+        [Bias::Aps, Bias::Dvs, Bias::Aps, Bias::Dvs, Bias::Aps]
+    );
+    for f in sequence {
+        let d = choose_beta(f, None, &config).unwrap();
+        let r = ratio(f);
+        assert!((d.ratio - r).abs() < 1e-12);
+        let want = match d.bias {
+            Bias::Aps => r.min(1.0 - r),
+            _ => r.max(1.0 - r),
+        };
+        assert!((d.beta - want).abs() < 1e-12, "{d:?}");
+    }
+    // Too few features on a well-exposed frame also switch to DVS; the cap bounds β.
+    assert_eq!(
+        choose_beta(&normal, Some(20), &config).unwrap().bias,
+        Bias::Dvs
+    );
+    assert_eq!(
+        choose_beta(&normal, Some(500), &config).unwrap().bias,
+        Bias::Aps
+    );
+    let capped = FusionConfig {
+        beta_max: 0.3,
+        ..FusionConfig::default()
+    };
+    let d = choose_beta(&dark, None, &capped).unwrap();
+    assert_eq!((d.bias, d.beta), (Bias::Dvs, 0.3));
+    for (mode, beta, bias) in [
+        (FusionMode::Frames, 0.0, Bias::FramesOnly),
+        (FusionMode::Events, 1.0, Bias::EventsOnly),
+    ] {
+        let c = FusionConfig {
+            mode,
+            ..FusionConfig::default()
+        };
+        let d = choose_beta(&dark, Some(0), &c).unwrap();
+        assert_eq!((d.beta, d.bias), (beta, bias));
+    }
+    assert_eq!(choose_beta(&[0, 0], None, &config).unwrap().ratio, 0.0);
+    assert!(choose_beta(&[], None, &config).is_err());
+}
+
+#[test]
+fn fusion_blends_frame_and_event_intensity() {
+    let e3ct = [0.2f32, 0.9, 0.1, 0.0, 0.0, 0.0, 1.0, 0.5, 0.0];
+    let d = intensity_from_e3ct(&e3ct, 3).unwrap();
+    assert_eq!(d, vec![0.9, 0.0, 1.0]);
+    let c = [100u8, 200, 0];
+    assert_eq!(fuse(&c, &d, 0.0).unwrap(), c.to_vec());
+    assert_eq!(fuse(&c, &d, 1.0).unwrap(), vec![230, 0, 255]);
+    // 0.75·100 + 0.25·229.5 = 132.375; 0.75·200 = 150; 0.25·255 = 63.75.
+    assert_eq!(fuse(&c, &d, 0.25).unwrap(), vec![132, 150, 64]);
+    assert!(fuse(&c, &d[..2], 0.5).is_err());
+    assert!(fuse(&c, &d, 1.5).is_err());
+}

@@ -1,0 +1,219 @@
+//! Event representations: the E3CT, its normalisation and the ablation baselines.
+//!
+//! The event arrays must arrive with their exact dtypes (x, y uint16; t_ns int64; p int8)
+//! and C-contiguous; they are then read in place. `dhptam.events` converts anything else once,
+//! with range checks, before calling these functions.
+
+use dhptam_core::events::{self, E3ctParams, EventSlice, PolarityMode};
+use numpy::ndarray::Array3;
+use numpy::{
+    Element, IntoPyArray, PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray1,
+    PyReadonlyArrayDyn, PyUntypedArrayMethods,
+};
+use pyo3::prelude::*;
+
+use crate::errors::{input_error, IntoPyResult};
+
+/// A contiguous 1-D array of exactly `T`, borrowed in place.
+fn exact<'a, 'py, T: Element>(
+    array: &'a PyReadonlyArray1<'py, T>,
+    name: &str,
+) -> PyResult<&'a [T]> {
+    array
+        .as_slice()
+        .map_err(|_| input_error(name, "a C-contiguous array", "a strided view"))
+}
+
+fn parse_polarity(polarity: &str) -> PyResult<PolarityMode> {
+    match polarity {
+        "both" => Ok(PolarityMode::Both),
+        "split" => Ok(PolarityMode::Split),
+        other => Err(input_error(
+            "polarity",
+            "\"both\" or \"split\"",
+            format!("{other:?}"),
+        )),
+    }
+}
+
+type Window<'py> = (
+    PyReadonlyArray1<'py, u16>,
+    PyReadonlyArray1<'py, u16>,
+    PyReadonlyArray1<'py, i64>,
+    PyReadonlyArray1<'py, i8>,
+);
+
+/// Runs `f` on the borrowed window with the GIL released and shapes its output (H, W, C).
+fn image<'py>(
+    py: Python<'py>,
+    window: &Window<'py>,
+    width: u32,
+    height: u32,
+    f: impl FnOnce(&EventSlice<'_>) -> dhptam_core::Result<Vec<f32>> + Send,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    let slice = EventSlice::new(
+        exact(&window.0, "x")?,
+        exact(&window.1, "y")?,
+        exact(&window.2, "t_ns")?,
+        exact(&window.3, "p")?,
+    )
+    .py()?;
+    let data = py.detach(|| f(&slice)).py()?;
+    let pixels = width as usize * height as usize;
+    let channels = data.len().checked_div(pixels).unwrap_or(0);
+    Array3::from_shape_vec((height as usize, width as usize, channels), data)
+        .map(|a| a.into_pyarray(py))
+        .map_err(|e| input_error("width/height", "a consistent image size", e))
+}
+
+/// E3CT of one window, (H, W, C) float32, not normalised.
+#[pyfunction]
+#[pyo3(signature = (x, y, t_ns, p, width, height, t_start_ns, t_end_ns, alpha, eta_ms, channels, polarity))]
+#[allow(clippy::too_many_arguments)]
+pub fn _e3ct<'py>(
+    py: Python<'py>,
+    x: PyReadonlyArray1<'py, u16>,
+    y: PyReadonlyArray1<'py, u16>,
+    t_ns: PyReadonlyArray1<'py, i64>,
+    p: PyReadonlyArray1<'py, i8>,
+    width: u32,
+    height: u32,
+    t_start_ns: i64,
+    t_end_ns: i64,
+    alpha: f64,
+    eta_ms: f64,
+    channels: usize,
+    polarity: &str,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    let params = E3ctParams {
+        alpha,
+        eta_ms,
+        channels,
+        polarity: parse_polarity(polarity)?,
+    };
+    image(py, &(x, y, t_ns, p), width, height, |s| {
+        events::e3ct(s, width, height, t_start_ns, t_end_ns, &params)
+    })
+}
+
+/// Event count image, (H, W, 1) or (H, W, 2) float32.
+#[pyfunction]
+#[pyo3(signature = (x, y, t_ns, p, width, height, t_start_ns, t_end_ns, polarity))]
+#[allow(clippy::too_many_arguments)]
+pub fn _count_image<'py>(
+    py: Python<'py>,
+    x: PyReadonlyArray1<'py, u16>,
+    y: PyReadonlyArray1<'py, u16>,
+    t_ns: PyReadonlyArray1<'py, i64>,
+    p: PyReadonlyArray1<'py, i8>,
+    width: u32,
+    height: u32,
+    t_start_ns: i64,
+    t_end_ns: i64,
+    polarity: &str,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    let polarity = parse_polarity(polarity)?;
+    image(py, &(x, y, t_ns, p), width, height, |s| {
+        events::count_image(s, width, height, t_start_ns, t_end_ns, polarity)
+    })
+}
+
+/// Time surface, (H, W, 2) float32 (ON, OFF).
+#[pyfunction]
+#[pyo3(signature = (x, y, t_ns, p, width, height, t_start_ns, t_end_ns, tau_ms))]
+#[allow(clippy::too_many_arguments)]
+pub fn _time_surface<'py>(
+    py: Python<'py>,
+    x: PyReadonlyArray1<'py, u16>,
+    y: PyReadonlyArray1<'py, u16>,
+    t_ns: PyReadonlyArray1<'py, i64>,
+    p: PyReadonlyArray1<'py, i8>,
+    width: u32,
+    height: u32,
+    t_start_ns: i64,
+    t_end_ns: i64,
+    tau_ms: f64,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    image(py, &(x, y, t_ns, p), width, height, |s| {
+        events::time_surface(s, width, height, t_start_ns, t_end_ns, tau_ms)
+    })
+}
+
+/// Voxel grid, (H, W, bins) float32.
+#[pyfunction]
+#[pyo3(signature = (x, y, t_ns, p, width, height, t_start_ns, t_end_ns, bins))]
+#[allow(clippy::too_many_arguments)]
+pub fn _voxel_grid<'py>(
+    py: Python<'py>,
+    x: PyReadonlyArray1<'py, u16>,
+    y: PyReadonlyArray1<'py, u16>,
+    t_ns: PyReadonlyArray1<'py, i64>,
+    p: PyReadonlyArray1<'py, i8>,
+    width: u32,
+    height: u32,
+    t_start_ns: i64,
+    t_end_ns: i64,
+    bins: usize,
+) -> PyResult<Bound<'py, PyArray3<f32>>> {
+    image(py, &(x, y, t_ns, p), width, height, |s| {
+        events::voxel_grid(s, width, height, t_start_ns, t_end_ns, bins)
+    })
+}
+
+fn tensor_slice<'a>(t: &'a PyReadonlyArrayDyn<'_, f32>, name: &str) -> PyResult<&'a [f32]> {
+    t.as_slice()
+        .map_err(|_| input_error(name, "a C-contiguous float32 array", "a strided view"))
+}
+
+/// Per-channel scales pooled over `tensors` (each (H, W, C) float32, same C).
+#[pyfunction]
+pub fn _e3ct_scales(
+    py: Python<'_>,
+    tensors: Vec<PyReadonlyArrayDyn<'_, f32>>,
+    percentile: f64,
+) -> PyResult<Vec<f32>> {
+    let Some(first) = tensors.first() else {
+        return Err(input_error("tensors", "at least one tensor", "none"));
+    };
+    let channels = *first.shape().last().unwrap_or(&0);
+    let mut slices = Vec::with_capacity(tensors.len());
+    for (k, t) in tensors.iter().enumerate() {
+        let name = format!("tensors[{k}]");
+        if t.ndim() != 3 || t.shape()[2] != channels {
+            return Err(input_error(
+                &name,
+                &format!("an (H, W, {channels}) array"),
+                format!("shape {:?}", t.shape()),
+            ));
+        }
+        slices.push(tensor_slice(t, &name)?);
+    }
+    py.detach(|| events::channel_scales(&slices, channels, percentile))
+        .py()
+}
+
+/// A copy of `tensor` (H, W, C) divided per channel by `scales` and clipped to [0, 1].
+#[pyfunction]
+pub fn _e3ct_apply_scales<'py>(
+    py: Python<'py>,
+    tensor: PyReadonlyArrayDyn<'py, f32>,
+    scales: Vec<f32>,
+) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+    if tensor.ndim() != 3 || tensor.shape()[2] != scales.len() {
+        return Err(input_error(
+            "tensor",
+            &format!("an (H, W, {}) array, one channel per scale", scales.len()),
+            format!("shape {:?}", tensor.shape()),
+        ));
+    }
+    let out = tensor.as_array().to_owned();
+    let out = PyArrayDyn::from_owned_array(py, out);
+    {
+        let mut rw = out.readwrite();
+        let data = rw
+            .as_slice_mut()
+            .map_err(|_| input_error("tensor", "a contiguous copy", "a strided array"))?;
+        py.detach(|| events::apply_scales(data, &scales)).py()?;
+    }
+    Ok(out)
+}

@@ -1,0 +1,141 @@
+//! Fusion of events and frames: the online β, the blend, and the event→frame warp.
+
+use dhptam_core::config::FusionConfig;
+use dhptam_core::fusion::{self, Depth, EventFrameWarp};
+use dhptam_core::geometry::Pinhole;
+use nalgebra::Vector2;
+use numpy::ndarray::{Array2, Array3};
+use numpy::{
+    IntoPyArray, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+};
+use pyo3::prelude::*;
+
+use crate::arrays;
+use crate::config::PyConfig;
+use crate::errors::{input_error, IntoPyResult};
+use crate::geometry::PySe3;
+
+fn settings(config: Option<&PyConfig>) -> FusionConfig {
+    config.map(|c| c.inner.fusion.clone()).unwrap_or_default()
+}
+
+/// β of an 8-bit frame: `(bias, beta, ratio, clipped_fraction)`.
+#[pyfunction]
+#[pyo3(signature = (frame, feature_count=None, config=None))]
+pub fn _choose_beta(
+    py: Python<'_>,
+    frame: PyReadonlyArray2<'_, u8>,
+    feature_count: Option<usize>,
+    config: Option<&PyConfig>,
+) -> PyResult<(String, f64, f64, f64)> {
+    let pixels = frame
+        .as_slice()
+        .map_err(|_| input_error("frame", "a C-contiguous uint8 image", "a strided view"))?;
+    let settings = settings(config);
+    let d = py
+        .detach(|| fusion::choose_beta(pixels, feature_count, &settings))
+        .py()?;
+    Ok((
+        d.bias.as_str().to_owned(),
+        d.beta,
+        d.ratio,
+        d.clipped_fraction,
+    ))
+}
+
+/// `(1 − β) frame + β · 255 · max_c(e3ct)`, rounded to uint8.
+#[pyfunction]
+pub fn _fuse<'py>(
+    py: Python<'py>,
+    frame: PyReadonlyArray2<'py, u8>,
+    e3ct: PyReadonlyArray3<'py, f32>,
+    beta: f64,
+) -> PyResult<Bound<'py, PyArray2<u8>>> {
+    let (h, w) = (frame.shape()[0], frame.shape()[1]);
+    if e3ct.shape()[..2] != [h, w] {
+        return Err(input_error(
+            "e3ct",
+            &format!("an ({h}, {w}, C) array, the frame's size"),
+            format!("shape {:?}", e3ct.shape()),
+        ));
+    }
+    let c = e3ct.shape()[2];
+    let pixels = frame
+        .as_slice()
+        .map_err(|_| input_error("frame", "a C-contiguous uint8 image", "a strided view"))?;
+    let events = e3ct
+        .as_slice()
+        .map_err(|_| input_error("e3ct", "a C-contiguous float32 array", "a strided view"))?;
+    let fused = py
+        .detach(|| {
+            let d = fusion::intensity_from_e3ct(events, c)?;
+            fusion::fuse(pixels, &d, beta)
+        })
+        .py()?;
+    Array2::from_shape_vec((h, w), fused)
+        .map(|a| a.into_pyarray(py))
+        .map_err(|e| input_error("frame", "a consistent size", e))
+}
+
+fn pinhole(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<Pinhole> {
+    let [fx, fy, cx, cy] = arrays::vector::<4>(obj, name)?;
+    Ok(Pinhole { fx, fy, cx, cy })
+}
+
+/// Warps a rectified event image (H, W, C) into the rectified frame camera.
+#[pyfunction]
+#[pyo3(signature = (image, k_event, k_frame, frame_from_event, depth_m, align_px, width, height, pixels=None))]
+#[allow(clippy::too_many_arguments)]
+pub fn _warp_to_frame<'py>(
+    py: Python<'py>,
+    image: PyReadonlyArray3<'py, f32>,
+    k_event: &Bound<'py, PyAny>,
+    k_frame: &Bound<'py, PyAny>,
+    frame_from_event: &PySe3,
+    depth_m: f64,
+    align_px: &Bound<'py, PyAny>,
+    width: usize,
+    height: usize,
+    pixels: Option<&Bound<'py, PyAny>>,
+) -> PyResult<(Bound<'py, PyArray3<f32>>, Option<Bound<'py, PyArray2<f64>>>)> {
+    let depth = if depth_m == 0.0 {
+        Depth::Infinity
+    } else {
+        Depth::Plane { depth_m }
+    };
+    let [ax, ay] = arrays::vector::<2>(align_px, "align_px")?;
+    let warp = EventFrameWarp::new(
+        pinhole(k_event, "k_event")?,
+        pinhole(k_frame, "k_frame")?,
+        frame_from_event.inner,
+        depth,
+        Vector2::new(ax, ay),
+    )
+    .py()?;
+    let (sh, sw, c) = (image.shape()[0], image.shape()[1], image.shape()[2]);
+    let src = image
+        .as_slice()
+        .map_err(|_| input_error("image", "a C-contiguous float32 array", "a strided view"))?;
+    let out = py
+        .detach(|| warp.warp_image(src, sw, sh, c, width, height))
+        .py()?;
+    let out = Array3::from_shape_vec((height, width, c), out)
+        .map_err(|e| input_error("image", "a consistent size", e))?
+        .into_pyarray(py);
+    let warped = match pixels {
+        None => None,
+        Some(p) => {
+            let p = arrays::rows(p, 2, "pixels")?;
+            let view = p.as_array();
+            let mut uv = Array2::from_elem((view.nrows(), 2), f64::NAN);
+            for (i, row) in view.rows().into_iter().enumerate() {
+                if let Some(q) = warp.warp_pixel(&Vector2::new(row[0], row[1])) {
+                    uv[[i, 0]] = q.x;
+                    uv[[i, 1]] = q.y;
+                }
+            }
+            Some(uv.into_pyarray(py))
+        }
+    };
+    Ok((out, warped))
+}

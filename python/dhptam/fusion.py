@@ -1,0 +1,93 @@
+"""Fusion of events and frames (DH-PTAM eqs. 5–6): online β, blending, event→frame warp.
+
+All three run in the Rust core with the GIL released.
+
+* :func:`choose_beta`: with ``r = mean(C) / max(C)``, APS-biased ``beta = min(r, 1 - r)`` when
+  the frame is usable, DVS-biased ``beta = max(r, 1 - r)`` when more than
+  ``[fusion] max_clipped_fraction`` of its pixels are under/over-exposed or fewer than
+  ``min_features`` features were found on it; capped at ``beta_max``; modes ``frames``
+  (beta = 0) and ``events`` (beta = 1).
+* :func:`fuse`: ``(1 - beta) C + beta * 255 * D`` with ``D`` the per-pixel maximum of the
+  normalised, warped E3CT channels.
+* :func:`warp_to_frame`: the rectified E3CT resampled into the rectified frame camera through
+  a plane at ``depth_m`` (0: infinity) with a real perspective divide, plus ``align_px``.
+
+Example: a dark frame switches to the DVS-biased mode::
+
+    >>> import numpy as np
+    >>> from dhptam.fusion import choose_beta
+    >>> dark = np.full((48, 64), 5, np.uint8); dark[0, 0] = 200
+    >>> d = choose_beta(dark)
+    >>> d.bias, round(d.beta, 3)
+    ('dvs', 0.975)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from . import _core
+from .geometry import SE3
+
+
+@dataclass(frozen=True)
+class BetaDecision:
+    """The β of one frame: ``bias`` is ``"aps"``, ``"dvs"``, ``"frames"`` or ``"events"``."""
+
+    bias: str
+    beta: float
+    ratio: float
+    clipped_fraction: float
+
+
+def choose_beta(
+    frame: npt.NDArray[np.uint8], feature_count: int | None = None, config: _core.Config | None = None
+) -> BetaDecision:
+    """β for an 8-bit grayscale frame (``[fusion]`` of ``config``, defaults otherwise)."""
+    image = np.ascontiguousarray(frame, dtype=np.uint8)
+    return BetaDecision(*_core._choose_beta(image, feature_count, config))
+
+
+def fuse(frame: npt.NDArray[np.uint8], e3ct: npt.NDArray[np.float32], beta: float) -> npt.NDArray[np.uint8]:
+    """Blends an 8-bit frame (H, W) with a normalised E3CT (H, W, C) already in its pixels."""
+    return _core._fuse(
+        np.ascontiguousarray(frame, dtype=np.uint8), np.ascontiguousarray(e3ct, dtype=np.float32), float(beta)
+    )
+
+
+def warp_to_frame(
+    image: npt.NDArray[np.float32],
+    k_event: npt.ArrayLike,
+    k_frame: npt.ArrayLike,
+    frame_from_event: SE3,
+    *,
+    width: int,
+    height: int,
+    depth_m: float = 0.0,
+    align_px: npt.ArrayLike = (0.0, 0.0),
+    pixels: npt.ArrayLike | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64] | None]:
+    """Resamples a rectified event image (H, W, C) into a ``height × width`` frame image.
+
+    ``k_event`` and ``k_frame`` are ``[fx, fy, cx, cy]`` of the rectified cameras,
+    ``frame_from_event`` maps rectified event-camera points to rectified frame-camera points.
+    When ``pixels`` (N, 2) of the event image are given, their frame pixels are returned too
+    (NaN behind the camera).
+    """
+    return _core._warp_to_frame(
+        np.ascontiguousarray(image, dtype=np.float32),
+        k_event,
+        k_frame,
+        frame_from_event,
+        float(depth_m),
+        align_px,
+        int(width),
+        int(height),
+        pixels,
+    )
+
+
+__all__ = ["BetaDecision", "choose_beta", "fuse", "warp_to_frame"]

@@ -1,0 +1,124 @@
+"""Online β, blending and the event→frame warp through the Python API."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dhptam import SE3, SO3, Config
+from dhptam.errors import ConfigError, InputError
+from dhptam.fusion import choose_beta, fuse, warp_to_frame
+
+
+def frame(base: float, gradient: float) -> np.ndarray:
+    row = np.clip(base + gradient * np.arange(64) / 63.0, 0, 255).astype(np.uint8)
+    return np.tile(row, (48, 1))
+
+
+def test_beta_switches_to_dvs_on_dark_and_bright_frames_and_back():
+    normal, dark, bright = frame(40, 180), frame(0, 30), frame(230, 25)
+    decisions = [choose_beta(f) for f in (normal, dark, normal, bright, normal)]
+    assert [d.bias for d in decisions] == ["aps", "dvs", "aps", "dvs", "aps"]
+    for f, d in zip((normal, dark, normal, bright, normal), decisions, strict=True):
+        r = f.mean() / f.max()
+        want = min(r, 1 - r) if d.bias == "aps" else max(r, 1 - r)
+        assert d.ratio == pytest.approx(r, abs=1e-12) and d.beta == pytest.approx(want, abs=1e-12)
+    assert choose_beta(normal, feature_count=10).bias == "dvs"
+    capped = Config.from_toml("[fusion]\nbeta_max = 0.3\n")
+    assert choose_beta(dark, config=capped).beta == 0.3
+    assert choose_beta(dark, config=Config.from_toml('[fusion]\nmode = "frames"\n')).beta == 0.0
+    assert choose_beta(normal, config=Config.from_toml('[fusion]\nmode = "events"\n')).bias == "events"
+    with pytest.raises(ConfigError):
+        Config.from_toml("[fusion]\nmax_clipped_fraction = 1.5\n")
+
+
+def test_fuse_blends_frame_and_event_intensity():
+    c = np.array([[100, 200, 0]], np.uint8)
+    d = np.array([[[0.2, 0.9, 0.1], [0, 0, 0], [1.0, 0.5, 0]]], np.float32)
+    assert fuse(c, d, 0.0).tolist() == c.tolist()
+    assert fuse(c, d, 0.25).tolist() == [[132, 150, 64]]
+    with pytest.raises(InputError):
+        fuse(c, d[:, :2], 0.5)
+    with pytest.raises(InputError):
+        fuse(c, d, 1.5)
+
+
+def test_warp_moves_event_pixels_onto_the_frame_pixel_of_the_same_point():
+    k_event = np.array([500.0, 500.0, 31.5, 23.5])
+    k_frame = np.array([600.0, 600.0, 40.0, 30.0])
+    frame_from_event = SE3(SO3.exp([0.0, 0.02, 0.01]), [0.05, -0.01, 0.0])
+    depth = 2.0
+    image = np.zeros((48, 64, 1), np.float32)
+    image[15, 20, 0] = 1.0
+    # The 3-D point seen at event pixel (20, 15) on the plane z = 2 m, and its frame pixel.
+    x_d = depth * np.array([(20 - 31.5) / 500.0, (15 - 23.5) / 500.0, 1.0])
+    x_c = frame_from_event @ x_d
+    want = np.array([600.0 * x_c[0] / x_c[2] + 40.0, 600.0 * x_c[1] / x_c[2] + 30.0])
+    out, uv = warp_to_frame(
+        image, k_event, k_frame, frame_from_event, width=80, height=60, depth_m=depth, pixels=[[20.0, 15.0]]
+    )
+    assert out.shape == (60, 80, 1) and uv is not None
+    assert np.linalg.norm(uv[0] - want) < 0.5
+    assert np.linalg.norm(uv[0] - want) < 1e-9
+    peak = np.unravel_index(np.argmax(out[..., 0]), out.shape[:2])
+    assert np.hypot(peak[1] - want[0], peak[0] - want[1]) <= 1.0
+    # Warping at infinity ignores the 5 cm offset: pixels off by several pixels at 2 m.
+    _, uv_inf = warp_to_frame(
+        image, k_event, k_frame, frame_from_event, width=80, height=60, pixels=[[20.0, 15.0]]
+    )
+    assert uv_inf is not None and np.linalg.norm(uv_inf[0] - want) > 5.0
+    # δP_align shifts the result by exactly itself.
+    _, uv_shift = warp_to_frame(
+        image,
+        k_event,
+        k_frame,
+        frame_from_event,
+        width=80,
+        height=60,
+        depth_m=depth,
+        align_px=[1.0, -2.0],
+        pixels=[[20.0, 15.0]],
+    )
+    assert uv_shift is not None and np.allclose(uv_shift[0] - uv[0], [1.0, -2.0])
+    with pytest.raises(InputError):
+        warp_to_frame(image, k_event, k_frame, frame_from_event, width=80, height=60, depth_m=-1.0)
+
+
+def test_fused_dark_frame_yields_more_features_than_the_frame_alone():
+    import cv2
+
+    from dhptam.events import e3ct, normalise
+
+    # A nearly black frame with squares 3 grey levels brighter: too faint for FAST.
+    dark = np.full((120, 160), 4, np.uint8)
+    squares = [(20, 20), (20, 90), (70, 40), (70, 110)]
+    for r, c in squares:
+        dark[r : r + 30, c : c + 30] = 7
+    # Events fire along the squares' edges over a 50 ms window (an edge sweeping the sensor).
+    ys, xs = [], []
+    for r, c in squares:
+        for k in range(30):
+            ys += [r, r + 29, r + k, r + k]
+            xs += [c + k, c + k, c, c + 29]
+    n = len(xs)
+    t = np.linspace(0, 49_000_000, n).astype(np.int64)
+    order = np.random.default_rng(1).permutation(n)
+    img = e3ct(
+        np.array(xs)[order],
+        np.array(ys)[order],
+        t,
+        np.ones(n, np.int8),
+        width=160,
+        height=120,
+        t_start_ns=0,
+        t_end_ns=50_000_000,
+        eta_ms=100.0,
+    )
+    (events,), _ = normalise(img)
+    decision = choose_beta(dark)
+    assert decision.bias == "dvs"
+    fused = fuse(dark, events, decision.beta)
+    fast = cv2.FastFeatureDetector_create(threshold=20)
+    on_frame = len(fast.detect(dark))
+    on_fused = len(fast.detect(fused))
+    assert on_frame == 0 and on_fused >= 4 * len(squares), (on_frame, on_fused)
