@@ -11,5 +11,7 @@
 pub mod config;
 pub mod error;
 pub mod geometry;
+pub mod io;
+pub mod solver;
 
 pub use error::{Error, Result};
