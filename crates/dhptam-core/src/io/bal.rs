@@ -145,7 +145,12 @@ impl BalProblem {
                 o.camera, o.point, o.pixel[0], o.pixel[1]
             );
         }
-        for v in self.cameras.iter().flatten().chain(self.points.iter().flatten()) {
+        for v in self
+            .cameras
+            .iter()
+            .flatten()
+            .chain(self.points.iter().flatten())
+        {
             let _ = writeln!(s, "{v:e}");
         }
         s

@@ -178,10 +178,9 @@ impl PoseGraph {
                 "EDGE_SE3:QUAT" | "EDGE_SE2" => {
                     let vertex = |line: &mut Line<'_>, what: &str| -> Result<usize> {
                         let id = line.index(what, None)?;
-                        index
-                            .get(&id)
-                            .copied()
-                            .ok_or_else(|| line.error(format!("{what} {id} is not a vertex defined above")))
+                        index.get(&id).copied().ok_or_else(|| {
+                            line.error(format!("{what} {id} is not a vertex defined above"))
+                        })
                     };
                     let from = vertex(&mut line, "vertex i")?;
                     let to = vertex(&mut line, "vertex j")?;
@@ -310,12 +309,17 @@ fn read_se3(line: &mut Line<'_>) -> Result<Se3> {
         line.float("qz")?,
         line.float("qw")?,
     ];
-    let rotation = So3::from_quaternion_xyzw(q).map_err(|e| line.error(format!("quaternion: {e}")))?;
+    let rotation =
+        So3::from_quaternion_xyzw(q).map_err(|e| line.error(format!("quaternion: {e}")))?;
     Ok(Se3::new(rotation, t))
 }
 
 fn write_se3(s: &mut String, p: &Se3) {
     let t = p.translation;
     let q = p.rotation.to_quaternion_xyzw();
-    let _ = write!(s, " {} {} {} {} {} {} {}", t.x, t.y, t.z, q[0], q[1], q[2], q[3]);
+    let _ = write!(
+        s,
+        " {} {} {} {} {} {} {}",
+        t.x, t.y, t.z, q[0], q[1], q[2], q[3]
+    );
 }

@@ -74,9 +74,11 @@ impl<'a> Line<'a> {
     /// The next token as an index no larger than `limit - 1` (no limit when `None`).
     pub fn index(&mut self, what: &str, limit: Option<usize>) -> Result<usize> {
         let tok = self.token(what)?;
-        let v = tok
-            .parse::<usize>()
-            .map_err(|_| self.error(format!("{what}: expected a non-negative integer, got {tok:?}")))?;
+        let v = tok.parse::<usize>().map_err(|_| {
+            self.error(format!(
+                "{what}: expected a non-negative integer, got {tok:?}"
+            ))
+        })?;
         match limit {
             Some(n) if v >= n => Err(self.error(format!(
                 "{what}: index {v} out of range (expected below {n})"

@@ -41,6 +41,10 @@ pub struct BundleOptions {
     pub threads: usize,
     /// Cameras held fixed (indices into the problem's cameras).
     pub fixed_cameras: Vec<usize>,
+    /// Observations whose point lies behind the camera (depth below machine epsilon)
+    /// contribute no residual, as COLMAP's reprojection cost does; off, every observation
+    /// counts, as in the plain BAL cost.
+    pub zero_behind_camera: bool,
     /// The LM loop's options.
     pub lm: LmOptions,
 }
@@ -87,6 +91,11 @@ impl CameraState {
         }
     }
 
+    /// Whether `x` is in front of the camera (BAL cameras look down −z).
+    fn sees(&self, x: &Vector3<f64>) -> bool {
+        -(self.matrix.row(2) * x)[0] - self.translation.z >= f64::EPSILON
+    }
+
     /// The predicted pixel.
     fn project(&self, x: &Vector3<f64>) -> Vector2<f64> {
         let pc = self.matrix * x + self.translation;
@@ -131,6 +140,7 @@ impl CameraState {
 /// [`BundleAdjustment::points`] or [`BundleAdjustment::write_back`].
 pub struct BundleAdjustment {
     loss: Loss,
+    zero_behind_camera: bool,
     lm: LmOptions,
     pool: rayon::ThreadPool,
     threads: usize,
@@ -276,11 +286,13 @@ impl BundleAdjustment {
             }
         }
         pair_start.push(pair_slots.len());
-        let cholesky = pool.install(|| BlockCholesky::new(&pattern, options.linear_solver, threads))?;
+        let cholesky =
+            pool.install(|| BlockCholesky::new(&pattern, options.linear_solver, threads))?;
         let cameras: Vec<CameraState> = problem.cameras.iter().map(CameraState::from_bal).collect();
         let points: Vec<Vector3<f64>> = problem.points.iter().map(|p| Vector3::from(*p)).collect();
         Ok(Self {
             loss: options.loss,
+            zero_behind_camera: options.zero_behind_camera,
             lm: options.lm.clone(),
             pool,
             threads,
@@ -337,7 +349,17 @@ impl BundleAdjustment {
     /// ½Σρ(‖r‖²) at the current estimate.
     pub fn current_cost(&mut self) -> f64 {
         let pool = &self.pool;
-        pool.install(|| total_cost(&self.cameras, &self.points, &self.point_obs, &self.obs_camera, &self.obs_pixel, &self.loss))
+        pool.install(|| {
+            total_cost(
+                &self.cameras,
+                &self.points,
+                &self.point_obs,
+                &self.obs_camera,
+                &self.obs_pixel,
+                &self.loss,
+                self.zero_behind_camera,
+            )
+        })
     }
 
     /// Cameras in BAL layout.
@@ -364,13 +386,18 @@ fn total_cost(
     obs_camera: &[usize],
     obs_pixel: &[Vector2<f64>],
     loss: &Loss,
+    zero_behind_camera: bool,
 ) -> f64 {
     0.5 * (0..points.len())
         .into_par_iter()
         .map(|j| {
             (point_obs[j]..point_obs[j + 1])
                 .map(|k| {
-                    let r = cameras[obs_camera[k]].project(&points[j]) - obs_pixel[k];
+                    let cam = &cameras[obs_camera[k]];
+                    if zero_behind_camera && !cam.sees(&points[j]) {
+                        return 0.0;
+                    }
+                    let r = cam.project(&points[j]) - obs_pixel[k];
                     loss.evaluate(r.norm_squared())[0]
                 })
                 .sum::<f64>()
@@ -385,19 +412,33 @@ fn clamped_diagonal<const N: usize>(m: &SMatrix<f64, N, N>, lo: f64, hi: f64) ->
 
 impl LeastSquares for BundleAdjustment {
     fn cost(&mut self) -> f64 {
-        total_cost(&self.cameras, &self.points, &self.point_obs, &self.obs_camera, &self.obs_pixel, &self.loss)
+        total_cost(
+            &self.cameras,
+            &self.points,
+            &self.point_obs,
+            &self.obs_camera,
+            &self.obs_pixel,
+            &self.loss,
+            self.zero_behind_camera,
+        )
     }
 
     fn linearize(&mut self) -> f64 {
         let (cameras, points) = (&self.cameras, &self.points);
-        let (point_obs, obs_camera, obs_pixel, loss) =
-            (&self.point_obs, &self.obs_camera, &self.obs_pixel, &self.loss);
+        let (point_obs, obs_camera, obs_pixel, loss) = (
+            &self.point_obs,
+            &self.obs_camera,
+            &self.obs_pixel,
+            &self.loss,
+        );
         let free_index = &self.free_index;
+        let zero_behind_camera = self.zero_behind_camera;
         // Residuals and Jacobians per point (each point owns a contiguous range).
         type PointSlices<'a> = (&'a mut [M29], &'a mut [Vector2<f64>], &'a mut [M93]);
         let mut per_point: Vec<PointSlices> = Vec::with_capacity(points.len());
         {
-            let (mut jc, mut res, mut w) = (&mut self.jc[..], &mut self.residual[..], &mut self.w[..]);
+            let (mut jc, mut res, mut w) =
+                (&mut self.jc[..], &mut self.residual[..], &mut self.w[..]);
             for j in 0..points.len() {
                 let m = point_obs[j + 1] - point_obs[j];
                 let (a, b) = jc.split_at_mut(m);
@@ -419,6 +460,12 @@ impl LeastSquares for BundleAdjustment {
                 *gp = Vector3::zeros();
                 for (local, k) in (point_obs[j]..point_obs[j + 1]).enumerate() {
                     let cam = &cameras[obs_camera[k]];
+                    if zero_behind_camera && !cam.sees(&points[j]) {
+                        w[local] = M93::zeros();
+                        jc[local] = M29::zeros();
+                        res[local] = Vector2::zeros();
+                        continue;
+                    }
                     let (pix, mut a, mut b) = cam.project_with_jacobians(&points[j]);
                     let mut r = pix - obs_pixel[k];
                     if *loss != Loss::Trivial {
@@ -468,15 +515,19 @@ impl LeastSquares for BundleAdjustment {
             .par_iter()
             .map(|v| {
                 let d = clamped_diagonal(v, lo, hi);
-                (v + Matrix3::from_diagonal(&(d * mu))).cholesky().map(|c| c.inverse())
+                (v + Matrix3::from_diagonal(&(d * mu)))
+                    .cholesky()
+                    .map(|c| c.inverse())
             })
             .collect();
         if v_inv.iter().any(Option::is_none) {
             return None;
         }
         let n_values = self.pattern.stored_blocks() * 81;
-        let (point_obs, obs_camera, free_index) = (&self.point_obs, &self.obs_camera, &self.free_index);
-        let (w, gp, pair_slots, pair_start) = (&self.w, &self.gp, &self.pair_slots, &self.pair_start);
+        let (point_obs, obs_camera, free_index) =
+            (&self.point_obs, &self.obs_camera, &self.free_index);
+        let (w, gp, pair_slots, pair_start) =
+            (&self.w, &self.gp, &self.pair_slots, &self.pair_start);
         // S = −Σ W V*⁻¹ Wᵀ off the camera diagonal terms, rhs = Σ W V*⁻¹ g_p, accumulated
         // per thread and summed.
         let (mut values, mut rhs) = (0..self.points.len())
@@ -514,7 +565,8 @@ impl LeastSquares for BundleAdjustment {
                             }
                             // A point seen twice by one camera lands on a diagonal block
                             // through two ordered pairs; the symmetric half is added here.
-                            if ka != kb && free_index[obs_camera[ka]] == free_index[obs_camera[kb]] {
+                            if ka != kb && free_index[obs_camera[ka]] == free_index[obs_camera[kb]]
+                            {
                                 let bt = block.transpose();
                                 for (x, y) in dst.iter_mut().zip(bt.iter()) {
                                     *x -= y;
@@ -614,6 +666,7 @@ impl LeastSquares for BundleAdjustment {
             &self.obs_camera,
             &self.obs_pixel,
             &self.loss,
+            self.zero_behind_camera,
         )
     }
 

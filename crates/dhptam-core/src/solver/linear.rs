@@ -200,7 +200,12 @@ impl BlockCholesky {
         }
     }
 
-    fn solve_dense(&mut self, pattern: &BlockPattern, values: &[f64], rhs: MatMut<'_, f64>) -> bool {
+    fn solve_dense(
+        &mut self,
+        pattern: &BlockPattern,
+        values: &[f64],
+        rhs: MatMut<'_, f64>,
+    ) -> bool {
         let b = pattern.b;
         let a = &mut self.dense_matrix;
         // The previous factor's fill-in sits where the pattern has no block: clear it.
@@ -264,7 +269,12 @@ impl BlockCholesky {
         );
         match factor {
             Ok(llt) => {
-                llt.solve_in_place_with_conj(Conj::No, rhs, self.parallelism, MemStack::new(buffer));
+                llt.solve_in_place_with_conj(
+                    Conj::No,
+                    rhs,
+                    self.parallelism,
+                    MemStack::new(buffer),
+                );
                 true
             }
             Err(_) => false,

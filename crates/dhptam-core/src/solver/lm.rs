@@ -201,7 +201,8 @@ pub fn solve<P: LeastSquares + ?Sized>(problem: &mut P, options: &LmOptions) -> 
             break Termination::NoDecrease;
         }
         iterations += 1;
-        let Some(step) = problem.compute_step(1.0 / radius, options.min_diagonal, options.max_diagonal)
+        let Some(step) =
+            problem.compute_step(1.0 / radius, options.min_diagonal, options.max_diagonal)
         else {
             radius /= nu;
             nu *= 2.0;
@@ -213,7 +214,9 @@ pub fn solve<P: LeastSquares + ?Sized>(problem: &mut P, options: &LmOptions) -> 
         }
         let new_cost = problem.candidate_cost();
         let ratio = (cost - new_cost) / step.model_decrease;
-        if !(new_cost.is_finite() && step.model_decrease > 0.0 && ratio > options.min_relative_decrease)
+        if !(new_cost.is_finite()
+            && step.model_decrease > 0.0
+            && ratio > options.min_relative_decrease)
         {
             radius /= nu;
             nu *= 2.0;

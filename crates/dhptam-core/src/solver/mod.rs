@@ -10,5 +10,8 @@ pub mod robust;
 pub use ba::{solve_bal, BundleAdjustment, BundleOptions};
 pub use linear::LinearSolver;
 pub use lm::{solve, LeastSquares, LmOptions, LmReport, Termination};
-pub use pose_graph::{solve_pose_graph2, solve_pose_graph3, GraphPose, PoseGraphOptions, PoseGraphSe2, PoseGraphSe3, PoseGraphSolver};
+pub use pose_graph::{
+    solve_pose_graph2, solve_pose_graph3, GraphPose, PoseGraphOptions, PoseGraphSe2, PoseGraphSe3,
+    PoseGraphSolver,
+};
 pub use robust::{Corrector, Loss};

@@ -135,7 +135,8 @@ impl GraphPose<3> for Pose2 {
         let mut ji = SMatrix::<f64, 3, 3>::zeros();
         let mut jj = SMatrix::<f64, 3, 3>::zeros();
         ji.fixed_view_mut::<2, 2>(0, 0).copy_from(&(-a));
-        ji.fixed_view_mut::<2, 1>(0, 2).copy_from(&(rzt * drit * dt));
+        ji.fixed_view_mut::<2, 1>(0, 2)
+            .copy_from(&(rzt * drit * dt));
         ji[(2, 2)] = -1.0;
         jj.fixed_view_mut::<2, 2>(0, 0).copy_from(&a);
         jj[(2, 2)] = 1.0;
@@ -256,7 +257,8 @@ impl<P: GraphPose<D>, const D: usize> PoseGraphSolver<P, D> {
             .num_threads(threads)
             .build()
             .map_err(|e| Error::numerical("thread pool", e.to_string()))?;
-        let cholesky = pool.install(|| BlockCholesky::new(&pattern, options.linear_solver, threads))?;
+        let cholesky =
+            pool.install(|| BlockCholesky::new(&pattern, options.linear_solver, threads))?;
         let n_edges = list.len();
         Ok(Self {
             loss: options.loss,
@@ -352,7 +354,10 @@ impl<P: GraphPose<D>, const D: usize> LeastSquares for PoseGraphSolver<P, D> {
             let (fi, fj) = (self.free_index[e.from], self.free_index[e.to]);
             if let Some(a) = fi {
                 let s = self.pattern.diagonal_slot(a);
-                add_block(&mut self.hessian[s * dd..(s + 1) * dd], &(ji.transpose() * ji));
+                add_block(
+                    &mut self.hessian[s * dd..(s + 1) * dd],
+                    &(ji.transpose() * ji),
+                );
                 let g = ji.transpose() * r;
                 for (x, y) in self.gradient[a * D..(a + 1) * D].iter_mut().zip(g.iter()) {
                     *x += y;
@@ -360,7 +365,10 @@ impl<P: GraphPose<D>, const D: usize> LeastSquares for PoseGraphSolver<P, D> {
             }
             if let Some(b) = fj {
                 let s = self.pattern.diagonal_slot(b);
-                add_block(&mut self.hessian[s * dd..(s + 1) * dd], &(jj.transpose() * jj));
+                add_block(
+                    &mut self.hessian[s * dd..(s + 1) * dd],
+                    &(jj.transpose() * jj),
+                );
                 let g = jj.transpose() * r;
                 for (x, y) in self.gradient[b * D..(b + 1) * D].iter_mut().zip(g.iter()) {
                     *x += y;
@@ -433,7 +441,11 @@ impl<P: GraphPose<D>, const D: usize> LeastSquares for PoseGraphSolver<P, D> {
     }
 
     fn state_norm(&self) -> f64 {
-        self.poses.iter().map(|p| p.norm_squared()).sum::<f64>().sqrt()
+        self.poses
+            .iter()
+            .map(|p| p.norm_squared())
+            .sum::<f64>()
+            .sqrt()
     }
 }
 
