@@ -1,5 +1,6 @@
 """Type stub of the compiled core module ``dhptam._core`` (checked by ``mypy.stubtest``)."""
 
+import os
 from typing import Any, final, overload
 
 import numpy as np
@@ -13,9 +14,12 @@ __all__ = [
     "RectifiedStereo",
     "StereoRig",
     "__version__",
+    "_bundle_adjust",
     "_data_address",
     "_log_from_rust",
     "_reset_log_cache",
+    "_solve_bal_file",
+    "_solve_pose_graph_file",
     "_triangulate",
     "thread_count",
 ]
@@ -175,3 +179,35 @@ def thread_count() -> int: ...
 def _data_address(array: _ArrayLike) -> int: ...
 def _reset_log_cache() -> None: ...
 def _log_from_rust(level: str, message: str) -> None: ...
+def _solve_bal_file(
+    path: str | os.PathLike[str],
+    *,
+    threads: int = 1,
+    linear_solver: str = "auto",
+    loss: str = "trivial",
+    loss_scale: float = 1.0,
+    zero_behind_camera: bool = False,
+    max_iterations: int = 50,
+    out: str | os.PathLike[str] | None = None,
+) -> dict[str, Any]: ...
+def _solve_pose_graph_file(
+    path: str | os.PathLike[str],
+    *,
+    threads: int = 1,
+    max_iterations: int = 50,
+    out: str | os.PathLike[str] | None = None,
+) -> dict[str, Any]: ...
+def _bundle_adjust(
+    cameras: _ArrayLike,
+    points: _ArrayLike,
+    camera_index: npt.NDArray[np.int64],
+    point_index: npt.NDArray[np.int64],
+    pixels: _ArrayLike,
+    *,
+    threads: int = 1,
+    linear_solver: str = "auto",
+    loss: str = "trivial",
+    loss_scale: float = 1.0,
+    fixed_cameras: list[int] = ...,
+    max_iterations: int = 50,
+) -> tuple[_FloatArray, _FloatArray, dict[str, Any]]: ...

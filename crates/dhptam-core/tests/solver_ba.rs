@@ -167,12 +167,23 @@ fn recovers_truth(linear_solver: LinearSolver) {
         ..Default::default()
     };
     let report = solve_bal(&mut problem, &options).unwrap();
-    assert!(report.initial_cost > 1e3, "the start is perturbed: {}", report.initial_cost);
-    assert!(report.final_cost < 1e-12, "final cost {}", report.final_cost);
+    assert!(
+        report.initial_cost > 1e3,
+        "the start is perturbed: {}",
+        report.initial_cost
+    );
+    assert!(
+        report.final_cost < 1e-12,
+        "final cost {}",
+        report.final_cost
+    );
     assert!(max_point_error(&problem, &truth) < 1e-6);
     for (c, t) in problem.cameras.iter().zip(&truth.cameras) {
         for k in 0..9 {
-            assert!((c[k] - t[k]).abs() < 1e-5 * (1.0 + t[k].abs()), "{c:?} vs {t:?}");
+            assert!(
+                (c[k] - t[k]).abs() < 1e-5 * (1.0 + t[k].abs()),
+                "{c:?} vs {t:?}"
+            );
         }
     }
 }
@@ -251,11 +262,21 @@ fn huber_loss_recovers_truth_despite_gross_outliers() {
         (Loss::Tukey(5.0), 1e-6),
     ] {
         let mut robust = problem.clone();
-        let report = solve_bal(&mut robust, &BundleOptions { loss, ..base.clone() }).unwrap();
+        let report = solve_bal(
+            &mut robust,
+            &BundleOptions {
+                loss,
+                ..base.clone()
+            },
+        )
+        .unwrap();
         assert_ne!(report.termination, Termination::NoDecrease);
         let err = rms_point_error(&robust, &truth);
         assert!(err < tolerance, "{loss:?}: rms point error {err}");
-        assert!(plain_err > 10.0 * err, "{loss:?}: {err} vs least squares {plain_err}");
+        assert!(
+            plain_err > 10.0 * err,
+            "{loss:?}: {err} vs least squares {plain_err}"
+        );
     }
 }
 

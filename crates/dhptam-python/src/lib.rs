@@ -12,6 +12,7 @@ mod arrays;
 mod config;
 mod errors;
 mod geometry;
+mod solver;
 mod stereo;
 
 use std::sync::{Mutex, OnceLock};
@@ -67,6 +68,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<stereo::PyRectifiedStereo>()?;
     m.add_function(wrap_pyfunction!(stereo::_triangulate, m)?)?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
+    m.add_function(wrap_pyfunction!(solver::_solve_bal_file, m)?)?;
+    m.add_function(wrap_pyfunction!(solver::_solve_pose_graph_file, m)?)?;
+    m.add_function(wrap_pyfunction!(solver::_bundle_adjust, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
     m.add_function(wrap_pyfunction!(thread_count, m)?)?;
