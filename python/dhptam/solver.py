@@ -3,7 +3,7 @@
 The solves run in Rust with the GIL released, on a thread pool local to each call. Costs are
 ½Σρ(‖r‖²) — Ceres' definition for bundle adjustment, ½Σ‖r‖²_Σ (GTSAM's) for pose graphs.
 
-Example: a two-camera BAL problem written, solved and read back::
+Example: a two-vertex planar pose graph written, solved and written back::
 
     >>> import tempfile, pathlib
     >>> from dhptam.solver import solve_pose_graph
@@ -12,10 +12,10 @@ Example: a two-camera BAL problem written, solved and read back::
     ...     "VERTEX_SE2 0 0 0 0\\nVERTEX_SE2 1 0.5 0.2 0.1\\n"
     ...     "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\\n")
     >>> report = solve_pose_graph(d / "g.g2o", out=d / "opt.g2o")
-    >>> round(report.final_cost, 12), report.termination in {"gradient_tolerance", "function_tolerance"}
-    (0.0, True)
-    >>> (d / "opt.g2o").read_text().splitlines()[1].split()[:3]
-    ['VERTEX_SE2', '1', '1']
+    >>> report.initial_cost > 0.1, report.final_cost < 1e-12
+    (True, True)
+    >>> [round(float(v), 6) for v in (d / "opt.g2o").read_text().splitlines()[1].split()[2:]]
+    [1.0, 0.0, 0.0]
 """
 
 from __future__ import annotations
