@@ -96,6 +96,36 @@ impl BlockPattern {
     }
 }
 
+/// Approximate-minimum-degree order of the block graph: (forward, inverse) permutations.
+fn block_amd(pattern: &BlockPattern) -> Result<(Vec<usize>, Vec<usize>)> {
+    let n = pattern.n;
+    let mut col_ptr = Vec::with_capacity(n + 1);
+    let mut row_idx = Vec::with_capacity(pattern.blocks.len());
+    col_ptr.push(0usize);
+    let mut s = 0;
+    for k in 0..n {
+        while s < pattern.blocks.len() && pattern.blocks[s].1 == k {
+            row_idx.push(pattern.blocks[s].0);
+            s += 1;
+        }
+        col_ptr.push(row_idx.len());
+    }
+    let nnz = row_idx.len();
+    let graph = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+    let mut fwd = vec![0usize; n];
+    let mut inv = vec![0usize; n];
+    let mut mem = MemBuffer::new(faer::sparse::linalg::amd::order_scratch::<usize>(n, nnz));
+    faer::sparse::linalg::amd::order(
+        &mut fwd,
+        &mut inv,
+        graph.as_ref(),
+        Default::default(),
+        MemStack::new(&mut mem),
+    )
+    .map_err(|e| Error::numerical("block ordering", format!("{e:?}")))?;
+    Ok((fwd, inv))
+}
+
 /// A reusable factorisation workspace for one [`BlockPattern`].
 pub struct BlockCholesky {
     dense: bool,
@@ -164,10 +194,22 @@ impl BlockCholesky {
             first = last;
         }
         let csc = SymbolicSparseColMat::new_checked(dim, dim, col_ptr, None, row_idx);
+        // Fill-reducing order computed on the block graph (n nodes instead of n·b) and
+        // expanded to scalars, so that each block's unknowns stay together and supernodes
+        // line up with blocks.
+        let (block_fwd, block_inv) = block_amd(pattern)?;
+        let fwd: Vec<usize> = block_fwd
+            .iter()
+            .flat_map(|&k| (0..b).map(move |c| k * b + c))
+            .collect();
+        let inv: Vec<usize> = block_inv
+            .iter()
+            .flat_map(|&k| (0..b).map(move |c| k * b + c))
+            .collect();
         let symbolic = factorize_symbolic_cholesky(
             csc.as_ref(),
             Side::Upper,
-            SymmetricOrdering::Amd,
+            SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(&fwd, &inv, dim)),
             CholeskySymbolicParams::default(),
         )
         .map_err(|e| Error::numerical("sparse Cholesky analysis", format!("{e:?}")))?;

@@ -136,6 +136,15 @@ pub struct LmReport {
 }
 
 impl LmReport {
+    /// Adds the time spent preparing the problem before the loop started to `seconds` and
+    /// to every history entry, so that times count from the call that built the problem.
+    pub fn include_setup(&mut self, setup_seconds: f64) {
+        self.seconds += setup_seconds;
+        for (_, s) in &mut self.history {
+            *s += setup_seconds;
+        }
+    }
+
     /// Seconds until the cost first reached `target`, `None` if it never did.
     pub fn seconds_to_cost(&self, target: f64) -> Option<f64> {
         self.history

@@ -4,12 +4,14 @@
 pub mod ba;
 pub mod linear;
 pub mod lm;
+pub mod pose;
 pub mod pose_graph;
 pub mod robust;
 
 pub use ba::{solve_bal, BundleAdjustment, BundleOptions};
 pub use linear::LinearSolver;
 pub use lm::{solve, LeastSquares, LmOptions, LmReport, Termination};
+pub use pose::{refine_pose, PoseObservation, PoseOptions, PoseResult, StereoIntrinsics};
 pub use pose_graph::{
     solve_pose_graph2, solve_pose_graph3, GraphPose, PoseGraphOptions, PoseGraphSe2, PoseGraphSe3,
     PoseGraphSolver,
