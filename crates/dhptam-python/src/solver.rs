@@ -119,13 +119,14 @@ pub fn _solve_pose_graph_file<'py>(
     out: Option<std::path::PathBuf>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let threads = resolve_threads(threads);
+    let defaults = PoseGraphOptions::default();
     let options = PoseGraphOptions {
         threads,
         lm: LmOptions {
             max_iterations,
-            ..Default::default()
+            ..defaults.lm.clone()
         },
-        ..Default::default()
+        ..defaults
     };
     let (report, kind, vertices, edges) = py
         .detach(

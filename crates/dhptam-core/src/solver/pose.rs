@@ -107,6 +107,19 @@ pub fn pose_residual(
     obs: &PoseObservation,
     min_depth: f64,
 ) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
+    let rt = (cam_from_world.rotation.matrix(), cam_from_world.translation);
+    residual(k, &rt, obs, min_depth)
+}
+
+/// The pose as (R, t): a matrix product per point instead of a quaternion rotation.
+type RigidMatrix = (nalgebra::Matrix3<f64>, Vector3<f64>);
+
+fn residual(
+    k: &StereoIntrinsics,
+    (rotation, translation): &RigidMatrix,
+    obs: &PoseObservation,
+    min_depth: f64,
+) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
     let (point, pixel, u_right) = match *obs {
         PoseObservation::Mono { point, pixel } => (point, pixel, None),
         PoseObservation::Stereo {
@@ -115,7 +128,7 @@ pub fn pose_residual(
             u_right,
         } => (point, pixel, Some(u_right)),
     };
-    let p = cam_from_world.transform_point(&point);
+    let p = rotation * point + translation;
     if !(p.z > min_depth) {
         return None;
     }
@@ -159,9 +172,10 @@ struct PoseProblem<'a> {
 
 impl PoseProblem<'_> {
     fn cost_at(&self, pose: &Se3) -> f64 {
+        let rt = (pose.rotation.matrix(), pose.translation);
         let mut c = 0.0;
         for o in self.observations {
-            if let Some((r, _, _)) = pose_residual(&self.k, pose, o, self.min_depth) {
+            if let Some((r, _, _)) = residual(&self.k, &rt, o, self.min_depth) {
                 c += self.loss.evaluate(r.norm_squared())[0];
             }
         }
