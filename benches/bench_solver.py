@@ -26,9 +26,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _baselines import ceres_bal, gtsam_pose_graph  # noqa: E402
+from _baselines import ceres_bal, gtsam_pose_graph
 
-from dhptam import solver  # noqa: E402
+from dhptam import solver
 
 SHARED = Path(os.environ.get("DHPTAM_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 
@@ -39,10 +39,7 @@ def _best(runs: list[dict]) -> dict:
 
 def bench_bal(path: Path, threads: int, repeat: int) -> dict:
     ours = _best(
-        [
-            solver.solve_bal(path, threads=threads, zero_behind_camera=True).__dict__
-            for _ in range(repeat)
-        ]
+        [solver.solve_bal(path, threads=threads, zero_behind_camera=True).__dict__ for _ in range(repeat)]
     )
     plain = solver.solve_bal(path, threads=threads)
     baselines = {
@@ -82,7 +79,9 @@ def _summarise(name: str, ours: dict, baselines: dict[str, dict], plain_bal=None
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--json", type=Path)

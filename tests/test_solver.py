@@ -5,17 +5,17 @@ problem is solved as a smoke test (the large ones live in benches/bench_solver.p
 
 from __future__ import annotations
 
+import itertools
 import json
 import threading
 import time
 
 import numpy as np
 import pytest
+from conftest import shared_path
 
 from dhptam import cli, solver
 from dhptam.errors import FileError, InputError, ParseError
-
-from conftest import shared_path
 
 
 def _rotation(w: np.ndarray) -> np.ndarray:
@@ -86,7 +86,7 @@ def test_bundle_adjust_recovers_scene_from_arrays():
     assert not np.allclose(start_pts, pts, atol=1e-3)
     costs = [c for c, _ in report.history]
     assert costs[0] == report.initial_cost
-    assert all(b <= a for a, b in zip(costs, costs[1:], strict=False))
+    assert all(b <= a for a, b in itertools.pairwise(costs))
 
 
 def test_bal_file_solves_to_known_optimum_and_cli_json(tmp_path, capsys):

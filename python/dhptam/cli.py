@@ -75,7 +75,8 @@ def _add_solve_parser(sub: Any) -> None:
         help="drop residuals of points behind their camera (COLMAP's cost)",
     )
     graph = kinds.add_parser("pose-graph", help="optimise a g2o pose graph (SE3 or SE2)")
-    for p, out_help in ((bal, "write the optimised BAL problem here"), (graph, "write the optimised graph here")):
+    outputs = ((bal, "write the optimised BAL problem here"), (graph, "write the optimised graph here"))
+    for p, out_help in outputs:
         p.add_argument("file", metavar="FILE")
         p.add_argument("--threads", type=int, default=1, help="worker threads (0: all cores)")
         p.add_argument("--max-iterations", type=int, default=50, help="Levenberg-Marquardt iteration limit")

@@ -101,7 +101,7 @@ fn synthetic_graph3(n: usize, seed: u64) -> (Vec<Se3>, Vec<EdgeSe3>) {
     }
     let info = Matrix6::from_diagonal(&Vector6::new(100.0, 100.0, 100.0, 400.0, 400.0, 400.0));
     let mut edges = Vec::new();
-    let mut add = |i: usize, j: usize, edges: &mut Vec<EdgeSe3>| {
+    let add = |i: usize, j: usize, edges: &mut Vec<EdgeSe3>| {
         edges.push(EdgeSe3 {
             from: i,
             to: j,

@@ -634,10 +634,9 @@ impl LeastSquares for BundleAdjustment {
         let mut neg_g_dot = point_terms.0;
         let mut d_dot = point_terms.1;
         let mut norm2 = point_terms.2;
-        for i in 0..n_free {
-            let dc = &self.step_c[i];
-            neg_g_dot -= self.gc[i].dot(dc);
-            d_dot += dc.component_mul(dc).dot(&camera_diag[i]);
+        for ((dc, g), d) in self.step_c.iter().zip(&self.gc).zip(&camera_diag) {
+            neg_g_dot -= g.dot(dc);
+            d_dot += dc.component_mul(dc).dot(d);
             norm2 += dc.norm_squared();
         }
         Some(Step {

@@ -129,7 +129,8 @@ fn residual(
         } => (point, pixel, Some(u_right)),
     };
     let p = rotation * point + translation;
-    if !(p.z > min_depth) {
+    // NaN depths fail this test too.
+    if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     let iz = 1.0 / p.z;
