@@ -1,5 +1,6 @@
 """Type stub of the compiled core module ``dhptam._core`` (checked by ``mypy.stubtest``)."""
 
+import os
 from typing import Any, final, overload
 
 import numpy as np
@@ -14,6 +15,7 @@ __all__ = [
     "Simulator",
     "StereoRig",
     "__version__",
+    "_bundle_adjust",
     "_choose_beta",
     "_count_image",
     "_data_address",
@@ -23,6 +25,8 @@ __all__ = [
     "_fuse",
     "_log_from_rust",
     "_reset_log_cache",
+    "_solve_bal_file",
+    "_solve_pose_graph_file",
     "_time_surface",
     "_triangulate",
     "_voxel_grid",
@@ -283,3 +287,35 @@ def _warp_to_frame(
     height: int,
     pixels: _ArrayLike | None = None,
 ) -> tuple[_F32, _FloatArray | None]: ...
+def _solve_bal_file(
+    path: str | os.PathLike[str],
+    *,
+    threads: int = 1,
+    linear_solver: str = "auto",
+    loss: str = "trivial",
+    loss_scale: float = 1.0,
+    zero_behind_camera: bool = False,
+    max_iterations: int = 50,
+    out: str | os.PathLike[str] | None = None,
+) -> dict[str, Any]: ...
+def _solve_pose_graph_file(
+    path: str | os.PathLike[str],
+    *,
+    threads: int = 1,
+    max_iterations: int = 50,
+    out: str | os.PathLike[str] | None = None,
+) -> dict[str, Any]: ...
+def _bundle_adjust(
+    cameras: _ArrayLike,
+    points: _ArrayLike,
+    camera_index: npt.NDArray[np.int64],
+    point_index: npt.NDArray[np.int64],
+    pixels: _ArrayLike,
+    *,
+    threads: int = 1,
+    linear_solver: str = "auto",
+    loss: str = "trivial",
+    loss_scale: float = 1.0,
+    fixed_cameras: list[int] = ...,
+    max_iterations: int = 50,
+) -> tuple[_FloatArray, _FloatArray, dict[str, Any]]: ...

@@ -11,6 +11,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from . import __version__, _core
 from .errors import DhptamError
@@ -81,6 +82,62 @@ def _add_simulate_command(sub: argparse._SubParsersAction) -> None:  # type: ign
     simulate.set_defaults(func=_simulate_command)
 
 
+def _solve_command(args: argparse.Namespace) -> int:
+    import json
+
+    from . import solver
+
+    if args.problem == "bal":
+        report = solver.solve_bal(
+            Path(args.file),
+            threads=args.threads,
+            linear_solver=args.linear_solver,
+            zero_behind_camera=args.zero_behind_camera,
+            max_iterations=args.max_iterations,
+            out=args.out,
+        )
+    else:
+        report = solver.solve_pose_graph(
+            Path(args.file), threads=args.threads, max_iterations=args.max_iterations, out=args.out
+        )
+    if args.json:
+        sys.stdout.write(json.dumps(report.to_json_dict()) + "\n")
+    else:
+        sys.stdout.write(
+            f"{args.file}: cost {report.initial_cost:.6e} -> {report.final_cost:.6e} in "
+            f"{report.iterations} iterations, {report.seconds:.3f} s on {report.threads} thread(s) "
+            f"({report.termination})\n"
+        )
+    return 0
+
+
+def _add_solve_parser(sub: Any) -> None:
+    solve = sub.add_parser(
+        "solve",
+        help="solve a bundle-adjustment (BAL) or pose-graph (g2o) problem file",
+        description="Levenberg-Marquardt on a BAL problem or a g2o pose graph, reporting costs.",
+    )
+    kinds = solve.add_subparsers(dest="problem", metavar="PROBLEM", required=True)
+    bal = kinds.add_parser("bal", help="bundle adjustment of a BAL problem-*.txt file")
+    bal.add_argument(
+        "--linear-solver", choices=["auto", "dense", "sparse"], default="auto", help="reduced camera system"
+    )
+    bal.add_argument(
+        "--zero-behind-camera",
+        action="store_true",
+        help="drop residuals of points behind their camera (COLMAP's cost)",
+    )
+    graph = kinds.add_parser("pose-graph", help="optimise a g2o pose graph (SE3 or SE2)")
+    outputs = ((bal, "write the optimised BAL problem here"), (graph, "write the optimised graph here"))
+    for p, out_help in outputs:
+        p.add_argument("file", metavar="FILE")
+        p.add_argument("--threads", type=int, default=1, help="worker threads (0: all cores)")
+        p.add_argument("--max-iterations", type=int, default=50, help="Levenberg-Marquardt iteration limit")
+        p.add_argument("--out", metavar="OUT", help=out_help)
+        p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+        p.set_defaults(func=_solve_command)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``dhptam`` command."""
     parser = argparse.ArgumentParser(
@@ -105,6 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--check", metavar="FILE", help="validate FILE and print the resolved configuration")
     config.set_defaults(func=_config_command)
     _add_simulate_command(sub)
+    _add_solve_parser(sub)
     return parser
 
 

@@ -16,6 +16,8 @@ pub mod error;
 pub mod events;
 pub mod fusion;
 pub mod geometry;
+pub mod io;
 pub mod sim;
+pub mod solver;
 
 pub use error::{Error, Result};

@@ -15,6 +15,7 @@ mod events;
 mod fusion;
 mod geometry;
 mod sim;
+mod solver;
 mod stereo;
 
 use std::sync::{Mutex, OnceLock};
@@ -83,6 +84,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(fusion::_fuse, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_warp_to_frame, m)?)?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
+    m.add_function(wrap_pyfunction!(solver::_solve_bal_file, m)?)?;
+    m.add_function(wrap_pyfunction!(solver::_solve_pose_graph_file, m)?)?;
+    m.add_function(wrap_pyfunction!(solver::_bundle_adjust, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
     m.add_function(wrap_pyfunction!(thread_count, m)?)?;

@@ -1,0 +1,292 @@
+//! Motion-only pose refinement: the camera pose alone is optimised against fixed 3-D points,
+//! as tracking does for every frame.
+//!
+//! The unknown is `cam_from_world`, updated on the left, T ← exp(δ) T with δ = [ρ, φ], so a
+//! point P = T X moves by ∂P/∂δ = [I | −[P]×]. Observations are rectified-stereo triples
+//! (u_left, v, u_right) or monocular pixels (u, v) of a pinhole camera; the right camera sits
+//! at +baseline along the left camera's x axis:
+//!
+//! ```text
+//! u_l = fx X/Z + cx,   v = fy Y/Z + cy,   u_r = fx (X − b)/Z + cx
+//! ```
+//!
+//! Points at depth Z ≤ `min_depth` contribute nothing at that estimate.
+
+use nalgebra::{Matrix6, SMatrix, Vector2, Vector3, Vector6};
+
+use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
+use super::robust::{Corrector, Loss};
+use crate::error::{Error, Result};
+use crate::geometry::so3::hat;
+use crate::geometry::Se3;
+
+/// Rectified stereo (or monocular, ignoring `baseline`) pinhole intrinsics.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StereoIntrinsics {
+    /// Focal length along x, pixels.
+    pub fx: f64,
+    /// Focal length along y, pixels.
+    pub fy: f64,
+    /// Principal point x, pixels.
+    pub cx: f64,
+    /// Principal point y, pixels.
+    pub cy: f64,
+    /// Distance from the left to the right camera centre along the left x axis, metres.
+    pub baseline: f64,
+}
+
+/// One observation of a fixed world point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PoseObservation {
+    /// A left-camera pixel.
+    Mono {
+        /// World point.
+        point: Vector3<f64>,
+        /// Measured (u, v).
+        pixel: Vector2<f64>,
+    },
+    /// A rectified stereo match: left pixel and right column.
+    Stereo {
+        /// World point.
+        point: Vector3<f64>,
+        /// Measured (u_left, v).
+        pixel: Vector2<f64>,
+        /// Measured u_right.
+        u_right: f64,
+    },
+}
+
+/// Options of [`refine_pose`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct PoseOptions {
+    /// Loss on each observation's squared pixel error (tracking uses Huber).
+    pub loss: Loss,
+    /// Points nearer than this (metres, along the optical axis) are ignored.
+    pub min_depth: f64,
+    /// Squared pixel error above which an observation counts as an outlier in the result.
+    pub outlier_threshold_sq: f64,
+    /// The LM loop's options (tracking runs a fixed small number of iterations).
+    pub lm: LmOptions,
+}
+
+impl Default for PoseOptions {
+    fn default() -> Self {
+        Self {
+            // √7.815 px: the 95 % χ² bound of a 3-dof stereo residual at σ = 1 px.
+            loss: Loss::Huber(7.815f64.sqrt()),
+            min_depth: 1e-6,
+            outlier_threshold_sq: 7.815,
+            lm: LmOptions {
+                max_iterations: 10,
+                ..Default::default()
+            },
+        }
+    }
+}
+
+/// The refined pose with the solve's report and its inlier statistics.
+#[derive(Clone, Debug)]
+pub struct PoseResult {
+    /// The refined `cam_from_world`.
+    pub cam_from_world: Se3,
+    /// The LM report.
+    pub report: LmReport,
+    /// Per observation: squared error under the threshold and in front of the camera.
+    pub inliers: Vec<bool>,
+    /// Number of `true` in `inliers`.
+    pub inlier_count: usize,
+    /// RMS pixel error over the inliers (0 when there are none).
+    pub inlier_rms: f64,
+}
+
+/// Residual (predicted − measured) of one observation with its 3×6 Jacobian (rows beyond the
+/// residual's length are zero); `None` when the point is behind `min_depth`.
+pub fn pose_residual(
+    k: &StereoIntrinsics,
+    cam_from_world: &Se3,
+    obs: &PoseObservation,
+    min_depth: f64,
+) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
+    let rt = (cam_from_world.rotation.matrix(), cam_from_world.translation);
+    residual(k, &rt, obs, min_depth)
+}
+
+/// The pose as (R, t): a matrix product per point instead of a quaternion rotation.
+type RigidMatrix = (nalgebra::Matrix3<f64>, Vector3<f64>);
+
+fn residual(
+    k: &StereoIntrinsics,
+    (rotation, translation): &RigidMatrix,
+    obs: &PoseObservation,
+    min_depth: f64,
+) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
+    let (point, pixel, u_right) = match *obs {
+        PoseObservation::Mono { point, pixel } => (point, pixel, None),
+        PoseObservation::Stereo {
+            point,
+            pixel,
+            u_right,
+        } => (point, pixel, Some(u_right)),
+    };
+    let p = rotation * point + translation;
+    // NaN depths fail this test too.
+    if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let iz = 1.0 / p.z;
+    let mut dp = SMatrix::<f64, 3, 6>::zeros();
+    dp.fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&nalgebra::Matrix3::identity());
+    dp.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-hat(&p)));
+    let mut proj = SMatrix::<f64, 3, 3>::zeros();
+    proj[(0, 0)] = k.fx * iz;
+    proj[(0, 2)] = -k.fx * p.x * iz * iz;
+    proj[(1, 1)] = k.fy * iz;
+    proj[(1, 2)] = -k.fy * p.y * iz * iz;
+    let mut r = Vector3::new(
+        k.fx * p.x * iz + k.cx - pixel.x,
+        k.fy * p.y * iz + k.cy - pixel.y,
+        0.0,
+    );
+    let dim = if let Some(ur) = u_right {
+        proj[(2, 0)] = k.fx * iz;
+        proj[(2, 2)] = -k.fx * (p.x - k.baseline) * iz * iz;
+        r.z = k.fx * (p.x - k.baseline) * iz + k.cx - ur;
+        3
+    } else {
+        2
+    };
+    Some((r, proj * dp, dim))
+}
+
+struct PoseProblem<'a> {
+    k: StereoIntrinsics,
+    observations: &'a [PoseObservation],
+    loss: Loss,
+    min_depth: f64,
+    pose: Se3,
+    candidate: Se3,
+    h: Matrix6<f64>,
+    g: Vector6<f64>,
+    step: Vector6<f64>,
+}
+
+impl PoseProblem<'_> {
+    fn cost_at(&self, pose: &Se3) -> f64 {
+        let rt = (pose.rotation.matrix(), pose.translation);
+        let mut c = 0.0;
+        for o in self.observations {
+            if let Some((r, _, _)) = residual(&self.k, &rt, o, self.min_depth) {
+                c += self.loss.evaluate(r.norm_squared())[0];
+            }
+        }
+        0.5 * c
+    }
+}
+
+impl LeastSquares for PoseProblem<'_> {
+    fn cost(&mut self) -> f64 {
+        self.cost_at(&self.pose)
+    }
+
+    fn linearize(&mut self) -> f64 {
+        self.h = Matrix6::zeros();
+        self.g = Vector6::zeros();
+        for o in self.observations {
+            let Some((mut r, mut j, _)) = pose_residual(&self.k, &self.pose, o, self.min_depth)
+            else {
+                continue;
+            };
+            if self.loss != Loss::Trivial {
+                let corr = Corrector::new(&self.loss, r.norm_squared());
+                if !corr.is_scalar() {
+                    j -= r * (r.transpose() * j) * corr.alpha_over_s;
+                }
+                j *= corr.sqrt_rho1;
+                r *= corr.residual_scale;
+            }
+            self.h += j.transpose() * j;
+            self.g += j.transpose() * r;
+        }
+        self.g.amax()
+    }
+
+    fn compute_step(&mut self, mu: f64, lo: f64, hi: f64) -> Option<Step> {
+        let d = Vector6::from_fn(|i, _| self.h[(i, i)].clamp(lo, hi));
+        let a = self.h + Matrix6::from_diagonal(&(d * mu));
+        let step = a.cholesky()?.solve(&-self.g);
+        if !step.iter().all(|x| x.is_finite()) {
+            return None;
+        }
+        self.step = step;
+        Some(Step {
+            model_decrease: 0.5 * (-self.g.dot(&step) + mu * step.component_mul(&step).dot(&d)),
+            norm: step.norm(),
+        })
+    }
+
+    fn candidate_cost(&mut self) -> f64 {
+        self.candidate = Se3::exp(&self.step) * self.pose;
+        self.cost_at(&self.candidate)
+    }
+
+    fn accept(&mut self) {
+        self.pose = self.candidate;
+    }
+
+    fn state_norm(&self) -> f64 {
+        self.pose.log().norm()
+    }
+}
+
+/// Refines `cam_from_world` against fixed points; returns the pose, the report and which
+/// observations are inliers at the result.
+pub fn refine_pose(
+    cam_from_world: Se3,
+    intrinsics: &StereoIntrinsics,
+    observations: &[PoseObservation],
+    options: &PoseOptions,
+) -> Result<PoseResult> {
+    let k = intrinsics;
+    crate::error::ensure_finite("intrinsics", &[k.fx, k.fy, k.cx, k.cy, k.baseline])?;
+    if observations.is_empty() {
+        return Err(Error::invalid("observations", "at least one", 0));
+    }
+    let mut problem = PoseProblem {
+        k: *k,
+        observations,
+        loss: options.loss,
+        min_depth: options.min_depth,
+        pose: cam_from_world,
+        candidate: cam_from_world,
+        h: Matrix6::zeros(),
+        g: Vector6::zeros(),
+        step: Vector6::zeros(),
+    };
+    let report = lm::solve(&mut problem, &options.lm)?;
+    let pose = problem.pose;
+    let mut inliers = Vec::with_capacity(observations.len());
+    let (mut sum, mut count) = (0.0, 0usize);
+    for o in observations {
+        let ok = match pose_residual(k, &pose, o, options.min_depth) {
+            Some((r, _, dim)) if r.norm_squared() <= options.outlier_threshold_sq => {
+                sum += r.norm_squared() / dim as f64;
+                true
+            }
+            _ => false,
+        };
+        count += ok as usize;
+        inliers.push(ok);
+    }
+    Ok(PoseResult {
+        cam_from_world: pose,
+        report,
+        inliers,
+        inlier_count: count,
+        inlier_rms: if count > 0 {
+            (sum / count as f64).sqrt()
+        } else {
+            0.0
+        },
+    })
+}
