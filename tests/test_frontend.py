@@ -93,10 +93,14 @@ def test_worker_exceptions_reach_the_consumer_and_the_thread_is_joined(sequence)
 
     counter.calls = 0  # type: ignore[attr-defined]
     fe = Frontend(sequence, "fusion", prefetch=2, feature_counter=counter)
-    seen = []
-    with pytest.raises(RuntimeError, match="on purpose"):
+    seen: list[int] = []
+
+    def consume() -> None:
         for f in fe:
             seen.append(f.index)
+
+    with pytest.raises(RuntimeError, match="on purpose"):
+        consume()
     assert seen == [0]  # frame 1's second counter call raised
     assert not _frontend_threads()
 
@@ -141,18 +145,24 @@ def test_event_to_frame_warp_with_true_depth_lands_on_the_same_3d_point(sequence
     z_rect = (rotation @ p_event)[:, 2]
     ok = np.isfinite(truth).all(axis=1) & np.isfinite(rect_e).all(axis=1) & np.isfinite(z_rect)
     assert ok.sum() > 100
-    warped = np.array([fe.warp_event_pixels(side, rect_e[i], depth_m=z_rect[i])[0] for i in np.flatnonzero(ok)])
+    warped = np.array(
+        [fe.warp_event_pixels(side, rect_e[i], depth_m=z_rect[i])[0] for i in np.flatnonzero(ok)]
+    )
     error = np.linalg.norm(warped - truth[ok], axis=1)
     assert error.max() < 0.5, error.max()
     # The scene is 1–3 m away and the cameras a few cm apart: the warp at infinity misses by
     # about a pixel at this resolution, so the depth really mattered.
-    at_infinity = np.array([fe.warp_event_pixels(side, rect_e[i], depth_m=0.0)[0] for i in np.flatnonzero(ok)])
+    at_infinity = np.array(
+        [fe.warp_event_pixels(side, rect_e[i], depth_m=0.0)[0] for i in np.flatnonzero(ok)]
+    )
     assert np.median(np.linalg.norm(at_infinity - truth[ok], axis=1)) > 0.5
     # The lookup table rounds to the nearest rectified event pixel (≤ 0.71 px there, scaled by
     # f_frame / f_event here); its median error stays under half a pixel too.
     table = fe._rectifiers[side].lookup(raw.astype(np.int64))
     ok_t = ok & np.isfinite(table).all(axis=1)
-    warped_t = np.array([fe.warp_event_pixels(side, table[i], depth_m=z_rect[i])[0] for i in np.flatnonzero(ok_t)])
+    warped_t = np.array(
+        [fe.warp_event_pixels(side, table[i], depth_m=z_rect[i])[0] for i in np.flatnonzero(ok_t)]
+    )
     assert np.median(np.linalg.norm(warped_t - truth[ok_t], axis=1)) < 0.5
 
 

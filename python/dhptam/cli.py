@@ -161,7 +161,8 @@ def _eval_command(args: argparse.Namespace) -> int:
     result = evaluate(estimate, reference, align=args.align, rpe_delta=args.rpe_delta)
     paths = write_result(result, args.out)
     sys.stdout.write(
-        f"ATE RMSE {result.ate_rmse_m:.4f} m ({result.ate_percent_of_path:.2f} % of {result.path_length_m:.2f} m), "
+        f"ATE RMSE {result.ate_rmse_m:.4f} m "
+        f"({result.ate_percent_of_path:.2f} % of {result.path_length_m:.2f} m), "
         f"RPE RMSE {result.rpe.get('rmse', float('nan')):.4f} m, coverage {100 * result.coverage:.1f} %, "
         f"{result.poses_matched}/{result.poses_estimate} poses, {args.align} alignment "
         f"(scale {result.scale:.4f})\n"
@@ -184,11 +185,15 @@ def _add_eval_command(sub: Any) -> None:
         ),
     )
     ev.add_argument("--estimate", metavar="FILE", help="estimated trajectory (TUM)")
-    ev.add_argument("--reference", metavar="FILE", help="reference trajectory (TUM, or TUM-VIE mocap_data.txt)")
+    ev.add_argument(
+        "--reference", metavar="FILE", help="reference trajectory (TUM, or TUM-VIE mocap_data.txt)"
+    )
     ev.add_argument("--reference-format", choices=list(REFERENCE_FORMATS), default="tum")
     ev.add_argument("--mocap-calibration", metavar="FILE", help="mocap-imu-calibration*.json (tum-vie-mocap)")
     ev.add_argument("--calibration", metavar="FILE", help="camera-calibration*.json (tum-vie-mocap)")
-    ev.add_argument("--align", choices=list(ALIGNMENTS), default="se3", help="Umeyama alignment (default se3)")
+    ev.add_argument(
+        "--align", choices=list(ALIGNMENTS), default="se3", help="Umeyama alignment (default se3)"
+    )
     ev.add_argument("--rpe-delta", type=int, default=1, metavar="FRAMES", help="RPE pose distance in frames")
     ev.add_argument("--suite", metavar="FILE", help="evaluate every run of a suite TOML instead")
     ev.add_argument("--out", required=True, metavar="DIR", help="output folder")

@@ -175,25 +175,36 @@ class Frontend:
         self._events_cfg: dict[str, Any] = settings["events"]
         fusion_cfg = settings["fusion"]
         self.plane_depth_m: float = float(fusion_cfg["plane_depth_m"])
-        self.align_px: tuple[float, float] = (float(fusion_cfg["align_px"][0]), float(fusion_cfg["align_px"][1]))
+        self.align_px: tuple[float, float] = (
+            float(fusion_cfg["align_px"][0]),
+            float(fusion_cfg["align_px"][1]),
+        )
 
         calib = sequence.calibration
         cams = calib.cameras
         self.frame_rect = RectifiedStereo(
-            StereoRig(cams["frame_left"], cams["frame_right"], calib.cam_from_cam("frame_right", "frame_left")),
+            StereoRig(
+                cams["frame_left"], cams["frame_right"], calib.cam_from_cam("frame_right", "frame_left")
+            ),
             self.config,
         )
         self._maps = {side: self.frame_rect.remap_tables(side) for side in ("left", "right")}
         self.t_f_ns = np.asarray(sequence.frames.t_mid_ns, np.int64)
         if np.any(np.diff(self.t_f_ns) <= 0):
             k = int(np.argmax(np.diff(self.t_f_ns) <= 0)) + 1
-            raise InputError(f"fusion times must increase; frame {k} is not after frame {k - 1}", field="frames")
+            raise InputError(
+                f"fusion times must increase; frame {k} is not after frame {k - 1}", field="frames"
+            )
         if mode != "frames":
             self.event_rect = RectifiedStereo(
-                StereoRig(cams["event_left"], cams["event_right"], calib.cam_from_cam("event_right", "event_left")),
+                StereoRig(
+                    cams["event_left"], cams["event_right"], calib.cam_from_cam("event_right", "event_left")
+                ),
                 self.config,
             )
-            self._rectifiers = {side: _core.EventRectifier(self.event_rect, side) for side in ("left", "right")}
+            self._rectifiers = {
+                side: _core.EventRectifier(self.event_rect, side) for side in ("left", "right")
+            }
             # Rectified frame camera ← rectified event camera, per side:
             # rect_f ← f (rectifying rotation) ← e (rig extrinsics) ← rect_e (inverse rotation).
             self.frame_from_event = {
@@ -279,7 +290,9 @@ class Frontend:
         import cv2
 
         map_x, map_y = self._maps[side]
-        return np.asarray(cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.uint8)
+        return np.asarray(
+            cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.uint8
+        )
 
     def _rectified_events(self, side: str, t0: int, t1: int) -> tuple[EventWindow, int]:
         raw = self.sequence.events[side].window(t0, t1)
@@ -344,7 +357,10 @@ class Frontend:
     def process(self, index: int) -> FrontendFrame:
         """Runs the pipeline on frame ``index`` in the calling thread."""
         pair = self.sequence.frames[index]
-        frames = {"left": self._rectify_frame(pair.left, "left"), "right": self._rectify_frame(pair.right, "right")}
+        frames = {
+            "left": self._rectify_frame(pair.left, "left"),
+            "right": self._rectify_frame(pair.right, "right"),
+        }
         t_ns = int(self.t_f_ns[index])
         if self.mode == "frames":
             return FrontendFrame(

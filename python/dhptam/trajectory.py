@@ -46,7 +46,9 @@ def poses_to_rows(poses: npt.ArrayLike) -> _F64:
             rows[i, :3] = pose.translation
             rows[i, 3:] = pose.rotation.quat_xyzw()
         return rows
-    raise InputError(f"poses must be (N, 4, 4) matrices or (N, 7) rows, got shape {array.shape}", field="poses")
+    raise InputError(
+        f"poses must be (N, 4, 4) matrices or (N, 7) rows, got shape {array.shape}", field="poses"
+    )
 
 
 def rows_to_matrices(rows: npt.ArrayLike) -> _F64:
@@ -114,7 +116,9 @@ def write_tum(
     """
     times = np.asarray(t_ns)
     if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
-        raise InputError(f"t_ns must be a 1-D integer array (nanoseconds), got {times.dtype} {times.shape}", field="t_ns")
+        raise InputError(
+            f"t_ns must be a 1-D integer array (nanoseconds), got {times.dtype} {times.shape}", field="t_ns"
+        )
     rows = poses_to_rows(poses)
     if rows.shape[0] != times.shape[0]:
         raise InputError(f"{times.shape[0]} times but {rows.shape[0]} poses", field="poses")
@@ -182,9 +186,16 @@ def read_tum(path: str | Path) -> tuple[npt.NDArray[np.int64], _F64]:
         try:
             values = [float(v) for v in tokens[1:]]
         except ValueError:
-            raise ParseError(f"{p}:{number}: a pose value is not a number: {line!r}", path=str(p), line=number, field="pose") from None
+            raise ParseError(
+                f"{p}:{number}: a pose value is not a number: {line!r}",
+                path=str(p),
+                line=number,
+                field="pose",
+            ) from None
         if not all(np.isfinite(values)):
-            raise ParseError(f"{p}:{number}: pose values must be finite", path=str(p), line=number, field="pose")
+            raise ParseError(
+                f"{p}:{number}: pose values must be finite", path=str(p), line=number, field="pose"
+            )
         norm = float(np.linalg.norm(values[3:]))
         if abs(norm - 1.0) > 1e-2:
             raise ParseError(
@@ -209,4 +220,11 @@ def read_tum(path: str | Path) -> tuple[npt.NDArray[np.int64], _F64]:
     return np.asarray(times, np.int64), np.asarray(rows, np.float64)
 
 
-__all__ = ["atomic_write_bytes", "atomic_write_text", "poses_to_rows", "read_tum", "rows_to_matrices", "write_tum"]
+__all__ = [
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "poses_to_rows",
+    "read_tum",
+    "rows_to_matrices",
+    "write_tum",
+]

@@ -64,7 +64,9 @@ class Trajectory:
 
     def path_length_m(self) -> float:
         """Sum of the distances between consecutive positions."""
-        return float(np.linalg.norm(np.diff(self.rows[:, :3], axis=0), axis=1).sum()) if len(self) > 1 else 0.0
+        return (
+            float(np.linalg.norm(np.diff(self.rows[:, :3], axis=0), axis=1).sum()) if len(self) > 1 else 0.0
+        )
 
 
 def load_trajectory(
@@ -113,9 +115,13 @@ def load_trajectory(
         rig = read_basalt_calibration(calib_path)
         truth, _ = _load_ground_truth(seq_dir, rig, mocap_calibration)
         if truth is None:
-            raise FileError(f"{seq_dir / 'mocap_data.txt'}: file not found", path=str(seq_dir / "mocap_data.txt"))
+            raise FileError(
+                f"{seq_dir / 'mocap_data.txt'}: file not found", path=str(seq_dir / "mocap_data.txt")
+            )
         return Trajectory(truth.t_ns, truth.world_from_cam, str(seq_dir / "mocap_data.txt"))
-    raise InputError(f"unknown trajectory format {fmt!r}; choose one of {', '.join(REFERENCE_FORMATS)}", field="format")
+    raise InputError(
+        f"unknown trajectory format {fmt!r}; choose one of {', '.join(REFERENCE_FORMATS)}", field="format"
+    )
 
 
 def interpolate(reference: Trajectory, t_ns: _I64, max_gap_s: float) -> tuple[_F64, npt.NDArray[np.bool_]]:
@@ -223,7 +229,8 @@ def evaluate(
         raise InputError(
             f"{estimate.source or 'estimate'}: only {matched} of {len(estimate)} poses fall inside the "
             f"reference {reference.source or ''} (span {reference.t_ns[0] / _NS:.3f}–"
-            f"{reference.t_ns[-1] / _NS:.3f} s); need at least 3 to align. Are both in seconds of the same clock?",
+            f"{reference.t_ns[-1] / _NS:.3f} s); need at least 3 to align. "
+            "Are both in seconds of the same clock?",
             field="estimate",
         )
     t = estimate.t_ns[ok]
@@ -235,7 +242,9 @@ def evaluate(
     ape_stats = {k: float(v) for k, v in ape.get_all_statistics().items()}
     rpe_stats: dict[str, float] = {}
     if matched > rpe_delta:
-        rpe = metrics.RPE(metrics.PoseRelation.translation_part, delta=rpe_delta, delta_unit=metrics.Unit.frames)
+        rpe = metrics.RPE(
+            metrics.PoseRelation.translation_part, delta=rpe_delta, delta_unit=metrics.Unit.frames
+        )
         rpe.process_data((ref, est))
         rpe_stats = {k: float(v) for k, v in rpe.get_all_statistics().items()}
     path_length = Trajectory(t, ref_rows[ok]).path_length_m()

@@ -36,7 +36,16 @@ else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
 _TOP_KEYS = {"align", "min_coverage", "run"}
-_RUN_KEYS = {"method", "sequence", "estimate", "reference", "reference_format", "mocap_calibration", "calibration", "align"}
+_RUN_KEYS = {
+    "method",
+    "sequence",
+    "estimate",
+    "reference",
+    "reference_format",
+    "mocap_calibration",
+    "calibration",
+    "align",
+}
 
 
 @dataclass(frozen=True)
@@ -65,7 +74,9 @@ class Suite:
 def _text(run: dict[str, Any], key: str, where: str, path: Path, default: str | None = None) -> str:
     value = run.get(key, default)
     if not isinstance(value, str) or not value:
-        raise ConfigError(f"{path}: {where}.{key} must be a non-empty string", path=str(path), field=f"{where}.{key}")
+        raise ConfigError(
+            f"{path}: {where}.{key} must be a non-empty string", path=str(path), field=f"{where}.{key}"
+        )
     return value
 
 
@@ -80,10 +91,14 @@ def read_suite(path: str | Path) -> Suite:
         raise ConfigError(f"{p}: not valid TOML ({err})", path=str(p)) from None
     unknown = sorted(set(doc) - _TOP_KEYS)
     if unknown:
-        raise ConfigError(f"{p}: unknown keys {unknown}; allowed: {sorted(_TOP_KEYS)}", path=str(p), field=unknown[0])
+        raise ConfigError(
+            f"{p}: unknown keys {unknown}; allowed: {sorted(_TOP_KEYS)}", path=str(p), field=unknown[0]
+        )
     default_align = doc.get("align", "se3")
     if default_align not in ALIGNMENTS:
-        raise ConfigError(f"{p}: align must be one of {ALIGNMENTS}, got {default_align!r}", path=str(p), field="align")
+        raise ConfigError(
+            f"{p}: align must be one of {ALIGNMENTS}, got {default_align!r}", path=str(p), field="align"
+        )
     min_coverage = doc.get("min_coverage", 0.99)
     if not isinstance(min_coverage, (int, float)) or not 0.0 <= float(min_coverage) <= 1.0:
         raise ConfigError(f"{p}: min_coverage must be a number in [0, 1]", path=str(p), field="min_coverage")
@@ -96,14 +111,27 @@ def read_suite(path: str | Path) -> Suite:
         where = f"run[{i}]"
         bad = sorted(set(entry) - _RUN_KEYS)
         if bad:
-            raise ConfigError(f"{p}: {where} has unknown keys {bad}; allowed: {sorted(_RUN_KEYS)}", path=str(p), field=f"{where}.{bad[0]}")
+            raise ConfigError(
+                f"{p}: {where} has unknown keys {bad}; allowed: {sorted(_RUN_KEYS)}",
+                path=str(p),
+                field=f"{where}.{bad[0]}",
+            )
         fmt = _text(entry, "reference_format", where, p, "tum")
         if fmt not in REFERENCE_FORMATS:
-            raise ConfigError(f"{p}: {where}.reference_format must be one of {REFERENCE_FORMATS}", path=str(p), field=f"{where}.reference_format")
+            raise ConfigError(
+                f"{p}: {where}.reference_format must be one of {REFERENCE_FORMATS}",
+                path=str(p),
+                field=f"{where}.reference_format",
+            )
         align = _text(entry, "align", where, p, default_align)
         if align not in ALIGNMENTS:
-            raise ConfigError(f"{p}: {where}.align must be one of {ALIGNMENTS}", path=str(p), field=f"{where}.align")
-        optional = {k: base / _text(entry, k, where, p) if k in entry else None for k in ("mocap_calibration", "calibration")}
+            raise ConfigError(
+                f"{p}: {where}.align must be one of {ALIGNMENTS}", path=str(p), field=f"{where}.align"
+            )
+        optional = {
+            k: base / _text(entry, k, where, p) if k in entry else None
+            for k in ("mocap_calibration", "calibration")
+        }
         runs.append(
             SuiteRun(
                 method=_text(entry, "method", where, p),
