@@ -48,3 +48,12 @@ def sim_tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from dhptam.sim import simulate
 
     return simulate(tmp_path_factory.mktemp("sim"), preset="tiny", seed=0).path
+
+
+@pytest.fixture(scope="session")
+def sim_small_desk(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """0.5 s of the ``desk`` preset (320-pixel frames, normal lighting), simulated once per
+    session (about 15 s on two cores): enough events and texture for δP_align matching."""
+    from dhptam.sim import simulate
+
+    return simulate(tmp_path_factory.mktemp("sim"), preset="desk", duration_s=0.5, seed=0).path

@@ -200,6 +200,57 @@ def _add_eval_command(sub: Any) -> None:
     ev.set_defaults(func=_eval_command)
 
 
+# -- dhptam calibrate-align (issue 5) -------------------------------------------------------------
+
+
+def _calibrate_align_command(args: argparse.Namespace) -> int:
+    from .align import calibrate_align, write_align_config
+    from .datasets import load_tumvie
+
+    base = _core.Config.from_file(Path(args.config)) if args.config else None
+    out = Path(args.out) if args.out else (Path(args.config) if args.config else None)
+    if out is None:
+        raise InputError("give --out FILE (or --config FILE to update it in place)", field="out")
+    with load_tumvie(args.sequence, calibration=args.calibration) as sequence:
+        estimate = calibrate_align(
+            sequence,
+            base,
+            side=args.side,
+            half_window_ms=args.half_window_ms,
+            max_frames=args.max_frames,
+            depth_compensation=not args.no_depth_compensation,
+        )
+    write_align_config(base, estimate.align_px, out)
+    sys.stdout.write(
+        f"δP_align ({args.side}) = [{estimate.align_px[0]:.3f}, {estimate.align_px[1]:.3f}] px "
+        f"(was [{estimate.previous_px[0]:.3f}, {estimate.previous_px[1]:.3f}]; {estimate.inliers} of "
+        f"{estimate.matches} matches agree, median spread {estimate.spread_px:.2f} px, "
+        f"{estimate.frames_used} frames); wrote {out}\n"
+    )
+    return 0
+
+
+def _add_calibrate_align_command(sub: Any) -> None:
+    cal = sub.add_parser(
+        "calibrate-align",
+        help="estimate the event→frame offset δP_align from a sequence and write it to a config",
+        description=(
+            "Match warped event images against the frames of a sequence (patch correlation on "
+            "well-exposed frames, parallax removed with StereoSGBM depth, RANSAC translation, "
+            "median) and write [fusion] align_px into a configuration TOML."
+        ),
+    )
+    cal.add_argument("--sequence", required=True, metavar="DIR", help="TUM-VIE sequence folder")
+    cal.add_argument("--calibration", metavar="FILE", help="camera-calibration*.json (default: found)")
+    cal.add_argument("--config", metavar="FILE", help="base configuration (updated in place without --out)")
+    cal.add_argument("--out", metavar="FILE", help="configuration TOML to write")
+    cal.add_argument("--side", choices=["left", "right"], default="left")
+    cal.add_argument("--half-window-ms", type=float, default=10.0, help="events within ± this of each frame")
+    cal.add_argument("--max-frames", type=int, help="use at most this many frames, spread evenly")
+    cal.add_argument("--no-depth-compensation", action="store_true", help="skip the SGBM parallax removal")
+    cal.set_defaults(func=_calibrate_align_command)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``dhptam`` command."""
     parser = argparse.ArgumentParser(
@@ -226,6 +277,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate_command(sub)
     _add_solve_parser(sub)
     _add_eval_command(sub)
+    _add_calibrate_align_command(sub)
     return parser
 
 
