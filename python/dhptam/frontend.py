@@ -85,8 +85,8 @@ class FrontendFrame:
     ``left``/``right`` are what the features run on: uint8 ``(H, W)`` images in the rectified
     frame cameras (fused, frames or events according to the mode). ``frame_left``/
     ``frame_right`` are the rectified frames alone and ``events_left``/``events_right`` the
-    warped E3CT intensity in [0, 1] (``None`` in mode ``frames``), for comparisons and
-    visualisation. ``bias`` is the left camera's β mode (``aps``, ``dvs``, ``frames``,
+    normalised E3CT warped into them, ``(H, W, C)`` float32 in [0, 1] (``None`` in mode
+    ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode (``aps``, ``dvs``, ``frames``,
     ``events``).
     """
 
@@ -341,8 +341,7 @@ class Frontend:
                 depth_m=self.plane_depth_m,
                 align_px=self.align_px,
             )
-            # The intensity domain of fuse(): the largest normalised channel per pixel.
-            out[side] = np.ascontiguousarray(warped.max(axis=2), dtype=np.float32)
+            out[side] = warped
         stats = E3ctStats(
             window_start_ns=t0,
             window_end_ns=t1,
@@ -378,7 +377,8 @@ class Frontend:
                 count = None if self.feature_counter is None else int(self.feature_counter(frames[side]))
                 d = choose_beta(frames[side], count, self.config)
                 betas[side] = (d.bias, d.beta)
-            images[side] = fuse(frames[side], events[side][:, :, None], betas[side][1])
+            # fuse() takes the per-pixel largest channel as the event intensity D.
+            images[side] = fuse(frames[side], events[side], betas[side][1])
         return FrontendFrame(
             index=index,
             t_ns=t_ns,
