@@ -29,9 +29,8 @@ from dhptam.sim.presets import RIGS
 def bench_rectifier(repeats: int) -> None:
     rig = RIGS["tumvie"]
     cams, poses = rig.cameras(), rig.imu_from_cam()
-    rect = RectifiedStereo(
-        StereoRig(cams["event_left"], cams["event_right"], poses["event_right"].inverse() @ poses["event_left"])
-    )
+    right_from_left = poses["event_right"].inverse() @ poses["event_left"]
+    rect = RectifiedStereo(StereoRig(cams["event_left"], cams["event_right"], right_from_left))
     t0 = time.perf_counter()
     rectifier = _core.EventRectifier(rect, "left")
     build = time.perf_counter() - t0
@@ -65,7 +64,8 @@ def bench_rectifier(repeats: int) -> None:
     assert all(np.array_equal(a, b) for a, b in zip(ours, ref, strict=True))
     print(f"EventRectifier table build (1280×720): {1e3 * build:.1f} ms")
     print(
-        f"rectify 1 M events: EventRectifier.apply {1e3 * best['rust']:.1f} ms, numpy {1e3 * best['numpy']:.1f} ms "
+        f"rectify 1 M events: EventRectifier.apply {1e3 * best['rust']:.1f} ms, "
+        f"numpy {1e3 * best['numpy']:.1f} ms "
         f"({best['numpy'] / best['rust']:.2f}×), {len(ours[0])} kept"
     )
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from sim_truth import simulator_like
 
-from dhptam import _core
+from dhptam import SE3, SO3, _core
 from dhptam.datasets import load_tumvie
 from dhptam.errors import InputError
 from dhptam.frontend import MODES, Frontend
@@ -74,6 +74,13 @@ def test_calibration_and_rect_from_cam_describe_the_rectified_left_camera(sequen
     uv = np.c_[fx * p_rect[:, 0] / p_rect[:, 2] + cx, fy * p_rect[:, 1] / p_rect[:, 2] + cy]
     expected = fe.frame_rect.rectify_pixels("left", cam.project(p_cam))
     assert np.allclose(uv, expected, atol=1e-6)
+    # Poses of the rectified camera map back: the camera's origin and axes seen from the world.
+    world_from_rect = SE3(SO3.exp([0.1, 0.2, -0.3]), [1.0, 2.0, 3.0]).matrix()
+    world_from_cam = fe.camera_poses(world_from_rect[None])[0]
+    assert np.allclose(
+        world_from_cam[:3, :3] @ p_cam[0] + world_from_cam[:3, 3],
+        world_from_rect[:3, :3] @ p_rect[0] + world_from_rect[:3, 3],
+    )
 
 
 def test_prefetch_gives_the_synchronous_results(sequence) -> None:  # type: ignore[no-untyped-def]

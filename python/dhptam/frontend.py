@@ -86,8 +86,8 @@ class FrontendFrame:
     frame cameras (fused, frames or events according to the mode). ``frame_left``/
     ``frame_right`` are the rectified frames alone and ``events_left``/``events_right`` the
     normalised E3CT warped into them, ``(H, W, C)`` float32 in [0, 1] (``None`` in mode
-    ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode (``aps``, ``dvs``, ``frames``,
-    ``events``).
+    ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode
+    (``aps``, ``dvs``, ``frames``, ``events``).
     """
 
     index: int
@@ -242,6 +242,14 @@ class Frontend:
         """Rectified left frame camera ← left frame camera (a pure rotation). A trajectory of
         the rectified camera maps back with ``world_from_cam = world_from_rect @ rect_from_cam``."""
         return SE3(self.frame_rect.rect_left_from_left)
+
+    def camera_poses(self, world_from_rect: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """``world_from_cam`` (N, 4, 4) of the left frame camera from the tracker's
+        ``world_from_rect`` (N, 4, 4) poses of the rectified left camera."""
+        poses = np.asarray(world_from_rect, np.float64)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise InputError(f"world_from_rect must be (N, 4, 4), got {poses.shape}", field="world_from_rect")
+        return poses @ self.rect_from_cam.matrix()
 
     def __len__(self) -> int:
         return self.stop - self.start
