@@ -150,8 +150,7 @@ impl EventRectifier {
                 let start = c * APPLY_CHUNK;
                 let end = (start + APPLY_CHUNK).min(n);
                 let mut j = 0;
-                for k in start..end {
-                    let e = index[k];
+                for (k, &e) in (start..end).zip(&index[start..end]) {
                     if e != OUTSIDE {
                         xo[j] = (e % rect_width) as u16;
                         yo[j] = (e / rect_width) as u16;
