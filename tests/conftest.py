@@ -36,3 +36,24 @@ def shared_path(*parts: str) -> Path:
 def rng() -> np.random.Generator:
     """A seeded generator, so failures reproduce."""
     return np.random.default_rng(20261126)
+
+
+# -- simulated sequences for the front-end, depth and eval tests (frontend branch) -------------
+
+
+@pytest.fixture(scope="session")
+def sim_tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The ``tiny`` preset (1 s, 128-pixel frames, HDR lighting: dark and bright segments),
+    simulated once per session; the sequence folder (TUM-VIE layout + ground truth)."""
+    from dhptam.sim import simulate
+
+    return simulate(tmp_path_factory.mktemp("sim"), preset="tiny", seed=0).path
+
+
+@pytest.fixture(scope="session")
+def sim_small_desk(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """0.5 s of the ``desk`` preset (320-pixel frames, normal lighting), simulated once per
+    session (about 15 s on two cores): enough events and texture for δP_align matching."""
+    from dhptam.sim import simulate
+
+    return simulate(tmp_path_factory.mktemp("sim"), preset="desk", duration_s=0.5, seed=0).path

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__, _core
-from .errors import DhptamError
+from .errors import DhptamError, InputError
 
 EXIT_USAGE = 2
 
@@ -138,6 +138,119 @@ def _add_solve_parser(sub: Any) -> None:
         p.set_defaults(func=_solve_command)
 
 
+# -- dhptam eval (issue 8) ---------------------------------------------------------------------
+
+
+def _eval_command(args: argparse.Namespace) -> int:
+    from .eval import evaluate, load_trajectory, run_suite, write_result
+
+    if args.suite:
+        table, _ = run_suite(args.suite, args.out)
+        sys.stdout.write(table)
+        sys.stdout.write(f"wrote {Path(args.out) / 'table.md'} and per-run results\n")
+        return 0
+    if not (args.estimate and args.reference):
+        raise InputError("give --estimate and --reference, or --suite", field="estimate")
+    estimate = load_trajectory(args.estimate, "tum")
+    reference = load_trajectory(
+        args.reference,
+        args.reference_format,
+        mocap_calibration=args.mocap_calibration,
+        calibration=args.calibration,
+    )
+    result = evaluate(estimate, reference, align=args.align, rpe_delta=args.rpe_delta)
+    paths = write_result(result, args.out)
+    sys.stdout.write(
+        f"ATE RMSE {result.ate_rmse_m:.4f} m "
+        f"({result.ate_percent_of_path:.2f} % of {result.path_length_m:.2f} m), "
+        f"RPE RMSE {result.rpe.get('rmse', float('nan')):.4f} m, coverage {100 * result.coverage:.1f} %, "
+        f"{result.poses_matched}/{result.poses_estimate} poses, {args.align} alignment "
+        f"(scale {result.scale:.4f})\n"
+    )
+    sys.stdout.write(f"wrote {paths['json']}\n")
+    return 0
+
+
+def _add_eval_command(sub: Any) -> None:
+    from .eval import ALIGNMENTS, REFERENCE_FORMATS
+
+    ev = sub.add_parser(
+        "eval",
+        help="trajectory accuracy (evo APE/RPE, coverage) with JSON and plots",
+        description=(
+            "Evaluate an estimated TUM trajectory against a reference with evo: APE (ATE RMSE) and "
+            "RPE after SE(3) or Sim(3) Umeyama alignment, coverage of the reference time span; "
+            "writes eval.json and PNG plots into --out. With --suite, evaluates every run of a "
+            "suite TOML and prints a markdown comparison table (also written to OUT/table.md)."
+        ),
+    )
+    ev.add_argument("--estimate", metavar="FILE", help="estimated trajectory (TUM)")
+    ev.add_argument(
+        "--reference", metavar="FILE", help="reference trajectory (TUM, or TUM-VIE mocap_data.txt)"
+    )
+    ev.add_argument("--reference-format", choices=list(REFERENCE_FORMATS), default="tum")
+    ev.add_argument("--mocap-calibration", metavar="FILE", help="mocap-imu-calibration*.json (tum-vie-mocap)")
+    ev.add_argument("--calibration", metavar="FILE", help="camera-calibration*.json (tum-vie-mocap)")
+    ev.add_argument(
+        "--align", choices=list(ALIGNMENTS), default="se3", help="Umeyama alignment (default se3)"
+    )
+    ev.add_argument("--rpe-delta", type=int, default=1, metavar="FRAMES", help="RPE pose distance in frames")
+    ev.add_argument("--suite", metavar="FILE", help="evaluate every run of a suite TOML instead")
+    ev.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    ev.set_defaults(func=_eval_command)
+
+
+# -- dhptam calibrate-align (issue 5) -------------------------------------------------------------
+
+
+def _calibrate_align_command(args: argparse.Namespace) -> int:
+    from .align import calibrate_align, write_align_config
+    from .datasets import load_tumvie
+
+    base = _core.Config.from_file(Path(args.config)) if args.config else None
+    out = Path(args.out) if args.out else (Path(args.config) if args.config else None)
+    if out is None:
+        raise InputError("give --out FILE (or --config FILE to update it in place)", field="out")
+    with load_tumvie(args.sequence, calibration=args.calibration) as sequence:
+        estimate = calibrate_align(
+            sequence,
+            base,
+            side=args.side,
+            half_window_ms=args.half_window_ms,
+            max_frames=args.max_frames,
+            depth_compensation=not args.no_depth_compensation,
+        )
+    write_align_config(base, estimate.align_px, out)
+    sys.stdout.write(
+        f"δP_align ({args.side}) = [{estimate.align_px[0]:.3f}, {estimate.align_px[1]:.3f}] px "
+        f"(was [{estimate.previous_px[0]:.3f}, {estimate.previous_px[1]:.3f}]; {estimate.inliers} of "
+        f"{estimate.matches} matches agree, median spread {estimate.spread_px:.2f} px, "
+        f"{estimate.frames_used} frames); wrote {out}\n"
+    )
+    return 0
+
+
+def _add_calibrate_align_command(sub: Any) -> None:
+    cal = sub.add_parser(
+        "calibrate-align",
+        help="estimate the event→frame offset δP_align from a sequence and write it to a config",
+        description=(
+            "Match warped event images against the frames of a sequence (patch correlation on "
+            "well-exposed frames, parallax removed with StereoSGBM depth, RANSAC translation, "
+            "median) and write [fusion] align_px into a configuration TOML."
+        ),
+    )
+    cal.add_argument("--sequence", required=True, metavar="DIR", help="TUM-VIE sequence folder")
+    cal.add_argument("--calibration", metavar="FILE", help="camera-calibration*.json (default: found)")
+    cal.add_argument("--config", metavar="FILE", help="base configuration (updated in place without --out)")
+    cal.add_argument("--out", metavar="FILE", help="configuration TOML to write")
+    cal.add_argument("--side", choices=["left", "right"], default="left")
+    cal.add_argument("--half-window-ms", type=float, default=10.0, help="events within ± this of each frame")
+    cal.add_argument("--max-frames", type=int, help="use at most this many frames, spread evenly")
+    cal.add_argument("--no-depth-compensation", action="store_true", help="skip the SGBM parallax removal")
+    cal.set_defaults(func=_calibrate_align_command)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``dhptam`` command."""
     parser = argparse.ArgumentParser(
@@ -163,6 +276,8 @@ def build_parser() -> argparse.ArgumentParser:
     config.set_defaults(func=_config_command)
     _add_simulate_command(sub)
     _add_solve_parser(sub)
+    _add_eval_command(sub)
+    _add_calibrate_align_command(sub)
     return parser
 
 

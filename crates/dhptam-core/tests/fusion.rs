@@ -245,6 +245,41 @@ fn event_rectifier_table_matches_per_pixel_rectification() {
     assert!(lut.apply(&events, 0, 10).is_err());
 }
 
+#[test]
+fn event_rectifier_apply_is_the_per_event_lookup_for_any_thread_count() {
+    let rig = rig();
+    let rect = rectified(&rig.event, &rig.event_from_rig);
+    let lut = EventRectifier::new(&rect, Side::Left);
+    // Several parallel chunks (65 536 events each) with a ragged last one.
+    let n = 200_003;
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let x: Vec<u16> = (0..n).map(|_| rng.random_range(0..1280u16)).collect();
+    let y: Vec<u16> = (0..n).map(|_| rng.random_range(0..720u16)).collect();
+    let t: Vec<i64> = (0..n as i64).collect();
+    let p: Vec<i8> = (0..n).map(|k| (k % 2) as i8).collect();
+    let events = EventSlice::new(&x, &y, &t, &p).unwrap();
+    let mut expected = dhptam_core::fusion::RectifiedEvents::default();
+    for k in 0..n {
+        if let Some((u, v)) = lut.lookup(x[k], y[k]) {
+            expected.x.push(u);
+            expected.y.push(v);
+            expected.t_ns.push(t[k]);
+            expected.p.push(p[k]);
+        }
+    }
+    assert!(expected.t_ns.len() > n / 2 && expected.t_ns.len() < n);
+    for threads in [1, 2, 3] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        let out = pool.install(|| lut.apply(&events, 0, n as i64)).unwrap();
+        assert_eq!(out, expected, "{threads} threads");
+    }
+    let empty = EventSlice::new(&[], &[], &[], &[]).unwrap();
+    assert_eq!(lut.apply(&empty, 0, 1).unwrap(), Default::default());
+}
+
 trait LenCheck {
     fn len_check(&self) -> bool;
 }

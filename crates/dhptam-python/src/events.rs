@@ -15,7 +15,7 @@ use pyo3::prelude::*;
 use crate::errors::{input_error, IntoPyResult};
 
 /// A contiguous 1-D array of exactly `T`, borrowed in place.
-fn exact<'a, 'py, T: Element>(
+pub(crate) fn exact<'a, 'py, T: Element>(
     array: &'a PyReadonlyArray1<'py, T>,
     name: &str,
 ) -> PyResult<&'a [T]> {

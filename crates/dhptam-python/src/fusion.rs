@@ -1,19 +1,23 @@
 //! Fusion of events and frames: the online β, the blend, and the event→frame warp.
 
 use dhptam_core::config::FusionConfig;
-use dhptam_core::fusion::{self, Depth, EventFrameWarp};
+use dhptam_core::events::EventSlice;
+use dhptam_core::fusion::{self, Depth, EventFrameWarp, EventRectifier};
 use dhptam_core::geometry::Pinhole;
 use nalgebra::Vector2;
 use numpy::ndarray::{Array2, Array3};
 use numpy::{
-    IntoPyArray, PyArray2, PyArray3, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
+    PyReadonlyArray3, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 
 use crate::arrays;
 use crate::config::PyConfig;
 use crate::errors::{input_error, IntoPyResult};
+use crate::events::exact;
 use crate::geometry::PySe3;
+use crate::stereo::{parse_side, PyRectifiedStereo};
 
 fn settings(config: Option<&PyConfig>) -> FusionConfig {
     config.map(|c| c.inner.fusion.clone()).unwrap_or_default()
@@ -138,4 +142,105 @@ pub fn _warp_to_frame<'py>(
         }
     };
     Ok((out, warped))
+}
+
+/// Rectified event arrays `(x uint16, y uint16, t_ns int64, p int8)`.
+type RectifiedArrays<'py> = (
+    Bound<'py, PyArray1<u16>>,
+    Bound<'py, PyArray1<u16>>,
+    Bound<'py, PyArray1<i64>>,
+    Bound<'py, PyArray1<i8>>,
+);
+
+/// Raw event pixel → rectified pixel lookup table of one camera of a rectified event-camera
+/// pair, built once (see `dhptam_core::fusion::EventRectifier`).
+#[pyclass(name = "EventRectifier", module = "dhptam._core", frozen)]
+pub struct PyEventRectifier {
+    inner: EventRectifier,
+}
+
+#[pymethods]
+impl PyEventRectifier {
+    /// Builds the table of camera `side` ("left"/"right") of the rectified pair `rect`.
+    #[new]
+    fn new(py: Python<'_>, rect: &PyRectifiedStereo, side: &str) -> PyResult<Self> {
+        let side = parse_side(side)?;
+        let inner = py.detach(|| EventRectifier::new(&rect.inner, side));
+        Ok(Self { inner })
+    }
+
+    /// Raw (event camera) image size `(width, height)`.
+    #[getter]
+    fn raw_size(&self) -> (u32, u32) {
+        (self.inner.width, self.inner.height)
+    }
+
+    /// Rectified image size `(width, height)`.
+    #[getter]
+    fn rect_size(&self) -> (u32, u32) {
+        (self.inner.rect_width, self.inner.rect_height)
+    }
+
+    /// Moves the events of `[t_start_ns, t_end_ns)` to their rectified pixels (nearest pixel).
+    ///
+    /// The arrays must have the exact dtypes (uint16, uint16, int64, int8) and be
+    /// C-contiguous; they are read in place with the GIL released. Raw pixels outside the raw
+    /// image, bad polarities and times outside the window or decreasing are errors naming the
+    /// event; events whose ray leaves the rectified view are dropped.
+    #[allow(clippy::too_many_arguments)]
+    fn apply<'py>(
+        &self,
+        py: Python<'py>,
+        x: PyReadonlyArray1<'py, u16>,
+        y: PyReadonlyArray1<'py, u16>,
+        t_ns: PyReadonlyArray1<'py, i64>,
+        p: PyReadonlyArray1<'py, i8>,
+        t_start_ns: i64,
+        t_end_ns: i64,
+    ) -> PyResult<RectifiedArrays<'py>> {
+        let slice = EventSlice::new(
+            exact(&x, "x")?,
+            exact(&y, "y")?,
+            exact(&t_ns, "t_ns")?,
+            exact(&p, "p")?,
+        )
+        .py()?;
+        let out = py
+            .detach(|| self.inner.apply(&slice, t_start_ns, t_end_ns))
+            .py()?;
+        Ok((
+            out.x.into_pyarray(py),
+            out.y.into_pyarray(py),
+            out.t_ns.into_pyarray(py),
+            out.p.into_pyarray(py),
+        ))
+    }
+
+    /// Rectified pixels `(N, 2)` (float64, NaN outside the rectified view) of raw integer
+    /// pixels `(N, 2)`, through the same table as [`apply`].
+    fn lookup<'py>(
+        &self,
+        py: Python<'py>,
+        pixels: PyReadonlyArray2<'py, i64>,
+    ) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let view = pixels.as_array();
+        if view.ncols() != 2 {
+            return Err(input_error(
+                "pixels",
+                "an (N, 2) array",
+                format!("shape {:?}", view.shape()),
+            ));
+        }
+        let mut out = Array2::from_elem((view.nrows(), 2), f64::NAN);
+        for (i, row) in view.rows().into_iter().enumerate() {
+            let (u, v) = (row[0], row[1]);
+            if let (Ok(u), Ok(v)) = (u16::try_from(u), u16::try_from(v)) {
+                if let Some((ru, rv)) = self.inner.lookup(u, v) {
+                    out[[i, 0]] = f64::from(ru);
+                    out[[i, 1]] = f64::from(rv);
+                }
+            }
+        }
+        Ok(out.into_pyarray(py))
+    }
 }

@@ -193,6 +193,24 @@ impl PySimulator {
             .into_pyarray(py))
     }
 
+    /// Ground-truth depth `(H, W)` float32 of camera `camera` (0–3) at `t_ns`: camera-frame z
+    /// in metres, NaN where the ray hits nothing.
+    fn render_depth<'py>(
+        &self,
+        py: Python<'py>,
+        camera: usize,
+        t_ns: i64,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let (h, w) = *self
+            .shapes
+            .get(camera)
+            .ok_or_else(|| input_error("camera", "an index 0–3", camera))?;
+        let depth = py.detach(|| self.inner.render_depth(camera, t_ns));
+        Ok(Array2::from_shape_vec((h, w), depth)
+            .map_err(|e| input_error("render_depth", "(H, W)", e))?
+            .into_pyarray(py))
+    }
+
     /// Poses `(N, 7)` of camera `camera` (0–3) at the times `t_ns`.
     fn world_from_cam<'py>(
         &self,

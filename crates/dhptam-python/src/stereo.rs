@@ -20,7 +20,7 @@ use crate::config::PyConfig;
 use crate::errors::{input_error, IntoPyResult};
 use crate::geometry::{mat_to_py, PyCamera, PySe3, PySo3};
 
-fn parse_side(side: &str) -> PyResult<Side> {
+pub(crate) fn parse_side(side: &str) -> PyResult<Side> {
     match side {
         "left" => Ok(Side::Left),
         "right" => Ok(Side::Right),

@@ -99,6 +99,9 @@ impl EventRectifier {
 
     /// Rectifies a window; raw coordinates outside the raw image are an error (see
     /// [`EventSlice::validate`]), events leaving the rectified view are dropped.
+    ///
+    /// Parallel over chunks of [`APPLY_CHUNK`] events with rayon; the chunks' outputs are
+    /// concatenated in input order, so the result is identical for any thread count.
     pub fn apply(
         &self,
         events: &EventSlice<'_>,
@@ -106,15 +109,71 @@ impl EventRectifier {
         t_end_ns: i64,
     ) -> Result<RectifiedEvents> {
         events.validate(self.width, self.height, t_start_ns, t_end_ns)?;
-        let mut out = RectifiedEvents::default();
-        for k in 0..events.len() {
-            if let Some((x, y)) = self.lookup(events.x[k], events.y[k]) {
-                out.x.push(x);
-                out.y.push(y);
-                out.t_ns.push(events.t_ns[k]);
-                out.p.push(events.p[k]);
-            }
-        }
+        let n = events.len();
+        // Pass 1: the rectified pixel index of every event (or OUTSIDE), in parallel.
+        let mut index = vec![OUTSIDE; n];
+        index
+            .par_chunks_mut(APPLY_CHUNK)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let start = c * APPLY_CHUNK;
+                for (k, slot) in out.iter_mut().enumerate() {
+                    let (u, v) = (events.x[start + k], events.y[start + k]);
+                    // validate() guaranteed u < width and v < height.
+                    *slot = self.table[usize::from(v) * self.width as usize + usize::from(u)];
+                }
+            });
+        // Pass 2: per chunk, the kept count, which places each chunk's output after the
+        // previous chunks' outputs.
+        let counts: Vec<usize> = index
+            .par_chunks(APPLY_CHUNK)
+            .map(|chunk| chunk.iter().filter(|&&e| e != OUTSIDE).count())
+            .collect();
+        let total: usize = counts.iter().sum();
+        let mut out = RectifiedEvents {
+            x: vec![0; total],
+            y: vec![0; total],
+            t_ns: vec![0; total],
+            p: vec![0; total],
+        };
+        // Pass 3: every chunk writes its kept events into its own disjoint output ranges.
+        let rect_width = self.rect_width;
+        let mut xs = split_at_offsets(&mut out.x, &counts);
+        let mut ys = split_at_offsets(&mut out.y, &counts);
+        let mut ts = split_at_offsets(&mut out.t_ns, &counts);
+        let mut ps = split_at_offsets(&mut out.p, &counts);
+        xs.par_iter_mut()
+            .zip(ys.par_iter_mut())
+            .zip(ts.par_iter_mut().zip(ps.par_iter_mut()))
+            .enumerate()
+            .for_each(|(c, ((xo, yo), (to, po)))| {
+                let start = c * APPLY_CHUNK;
+                let end = (start + APPLY_CHUNK).min(n);
+                let mut j = 0;
+                for (k, &e) in (start..end).zip(&index[start..end]) {
+                    if e != OUTSIDE {
+                        xo[j] = (e % rect_width) as u16;
+                        yo[j] = (e / rect_width) as u16;
+                        to[j] = events.t_ns[k];
+                        po[j] = events.p[k];
+                        j += 1;
+                    }
+                }
+            });
         Ok(out)
     }
+}
+
+/// Events per parallel chunk of [`EventRectifier::apply`].
+const APPLY_CHUNK: usize = 1 << 16;
+
+/// Splits `data` into consecutive mutable pieces of the given lengths.
+fn split_at_offsets<'a, T>(mut data: &'a mut [T], lengths: &[usize]) -> Vec<&'a mut [T]> {
+    let mut pieces = Vec::with_capacity(lengths.len());
+    for &len in lengths {
+        let (head, tail) = std::mem::take(&mut data).split_at_mut(len);
+        pieces.push(head);
+        data = tail;
+    }
+    pieces
 }

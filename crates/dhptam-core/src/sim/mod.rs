@@ -18,7 +18,7 @@ pub mod trajectory;
 
 pub use events::{Event, EventGenerator, EventParams};
 pub use frames::{Profile, Sensor, SensorParams};
-pub use render::{render, render_image, RayTable};
+pub use render::{render, render_depth, render_image, RayTable};
 pub use scene::{CameraRegion, Scene};
 pub use simulator::{FramePair, RigCamera, SimParams, Simulator, CAMERA_COUNT};
 pub use texture::{Texture, Wrap};

@@ -119,6 +119,39 @@ pub fn render(scene: &Scene, rays: &RayTable, world_from_cam: &Se3, out: &mut [f
         });
 }
 
+/// Renders the depth seen by a camera at `world_from_cam` into `out` (row-major, one value
+/// per pixel): the z coordinate, in metres, of the first surface hit by the pixel's ray, in
+/// the camera frame (not the distance along the ray). Pixels without a ray, or whose ray
+/// leaves the scene, get NaN. This is the ground truth for dense-depth and warp tests.
+pub fn render_depth(scene: &Scene, rays: &RayTable, world_from_cam: &Se3, out: &mut [f32]) {
+    assert_eq!(
+        out.len(),
+        rays.len(),
+        "output buffer must hold one value per pixel"
+    );
+    let r = world_from_cam.rotation.matrix().cast::<f32>();
+    let t = world_from_cam.translation.cast::<f32>();
+    let origin = [t.x, t.y, t.z];
+    out.par_chunks_mut(rays.width)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let start = y * rays.width;
+            for (x, value) in row.iter_mut().enumerate() {
+                let b = rays.bearings[start + x];
+                if b[0].is_nan() {
+                    *value = f32::NAN;
+                    continue;
+                }
+                let d: Vector3<f32> = r * Vector3::new(b[0], b[1], b[2]);
+                // A unit bearing b travelled `distance` reaches the camera-frame point
+                // distance · b, whose depth is distance · b_z.
+                *value = scene
+                    .trace(origin, [d.x, d.y, d.z], rays.pixel_angle[start + x])
+                    .map_or(f32::NAN, |h| h.distance * b[2]);
+            }
+        });
+}
+
 /// Renders into a new buffer; see [`render`].
 pub fn render_image(scene: &Scene, rays: &RayTable, world_from_cam: &Se3) -> Vec<f32> {
     let mut out = vec![0.0; rays.len()];

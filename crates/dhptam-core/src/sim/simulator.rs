@@ -12,7 +12,7 @@
 
 use super::events::{Event, EventGenerator, EventParams};
 use super::frames::{Profile, Sensor, SensorParams};
-use super::render::{render, RayTable};
+use super::render::{render, render_depth, RayTable};
 use super::scene::Scene;
 use super::trajectory::Trajectory;
 use crate::error::{Error, Result};
@@ -193,6 +193,15 @@ impl Simulator {
         let pose = self.world_from_cam(cam, t_ns);
         render(&self.scene, &self.rays[cam], &pose, &mut out);
         self.renders += 1;
+        out
+    }
+
+    /// Ground-truth depth (camera-frame z, metres; NaN where nothing is hit) seen by camera
+    /// `cam` at `t_ns`; see [`render_depth`]. Not counted in the event renders.
+    pub fn render_depth(&self, cam: usize, t_ns: i64) -> Vec<f32> {
+        let mut out = vec![0.0; self.rays[cam].len()];
+        let pose = self.world_from_cam(cam, t_ns);
+        render_depth(&self.scene, &self.rays[cam], &pose, &mut out);
         out
     }
 

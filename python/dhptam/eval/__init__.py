@@ -1,0 +1,48 @@
+"""Trajectory evaluation (issue 8): evo APE/RPE with SE(3)/Sim(3) alignment, coverage,
+JSON + PNG reports and suite tables. Needs the ``eval`` extra (evo, matplotlib).
+
+Example: an exact copy of a trajectory has zero ATE and full coverage::
+
+    >>> import numpy as np
+    >>> from dhptam.eval import Trajectory, evaluate
+    >>> t = np.arange(10, dtype=np.int64) * 100_000_000
+    >>> rows = np.zeros((10, 7)); rows[:, 0] = np.arange(10) * 0.1; rows[:, 6] = 1.0
+    >>> ref = Trajectory(t, rows)
+    >>> r = evaluate(Trajectory(t, rows.copy()), ref)
+    >>> round(r.ate_rmse_m, 9), r.coverage
+    (0.0, 1.0)
+"""
+
+from __future__ import annotations
+
+from .metrics import (
+    ALIGNMENTS,
+    REFERENCE_FORMATS,
+    EvalResult,
+    Trajectory,
+    coverage,
+    evaluate,
+    interpolate,
+    load_trajectory,
+)
+from .report import markdown_table, plot_errors, plot_trajectories, write_result
+from .suite import Suite, SuiteRun, read_suite, run_suite
+
+__all__ = [
+    "ALIGNMENTS",
+    "REFERENCE_FORMATS",
+    "EvalResult",
+    "Suite",
+    "SuiteRun",
+    "Trajectory",
+    "coverage",
+    "evaluate",
+    "interpolate",
+    "load_trajectory",
+    "markdown_table",
+    "plot_errors",
+    "plot_trajectories",
+    "read_suite",
+    "run_suite",
+    "write_result",
+]

@@ -1,0 +1,469 @@
+"""The per-frame front-end: events + frames → rectified fused stereo images (issue 5, Fig. 2).
+
+For fusion frame k (time ``t_f^k = t_cam + t_exp / 2``) the pipeline is
+
+1. the events of ``[t_f^(k-1), t_f^k)`` of each event camera (read lazily; frame 0 takes a
+   window as long as the next one);
+2. moved to their pixels in the **rectified event camera** through a lookup table built once
+   (``_core.EventRectifier``: event arrays read in place, GIL released);
+3. the E3CT of each side, normalised with per-channel scales shared by left and right;
+4. warped into the **rectified frame camera** of the same side (``warp_to_frame``: eq. 5
+   with a real perspective divide through a fronto-parallel plane, plus δP_align);
+5. β chosen online from the rectified frame (APS/DVS bias, ``[fusion]``) and the blend
+   ``(1 − β) C + β D``.
+
+Modes: ``fusion`` (the above), ``frames`` (rectified frames only; no event is read) and
+``events`` (the warped E3CT intensity alone, β = 1).
+
+Depth of the warp plane: ``[fusion] plane_depth_m`` (default 0 = infinity, a rotation-only
+homography). Infinity is the default because nothing about the scene is known before tracking
+starts, and it is exact for distant scenes; its error for a point at depth z is
+``f · b / z`` pixels with ``b`` the event-to-frame camera offset (a few cm on TUM-VIE-like
+rigs). The caller can set :attr:`Frontend.plane_depth_m` at any time, e.g. to the median depth
+of the tracked map points; the next frame processed uses it.
+
+A background thread runs ``prefetch`` frames ahead through a bounded queue, so the front-end of
+frame k+1 overlaps the consumer's tracking of frame k; the Rust kernels release the GIL.
+Exceptions raised in the thread are re-raised in the consumer; :meth:`Frontend.close` stops
+and joins the thread. ``prefetch=0`` runs everything in the consumer's thread.
+"""
+
+from __future__ import annotations
+
+import queue
+import re
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from . import _core
+from .datasets import EventWindow, Sequence
+from .errors import InputError
+from .events import e3ct, normalise
+from .fusion import choose_beta, fuse, warp_to_frame
+from .geometry import SE3, RectifiedStereo, StereoRig
+
+MODES = ("fusion", "frames", "events")
+_U8 = npt.NDArray[np.uint8]
+_F32 = npt.NDArray[np.float32]
+
+
+class RectifiedCalibration(NamedTuple):
+    """Rectified left frame camera intrinsics and stereo baseline, in the order of
+    ``dhptam.StereoCalibration(fx, fy, cx, cy, baseline_m, width, height)``."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline_m: float
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class E3ctStats:
+    """Event statistics of one frame's window."""
+
+    window_start_ns: int
+    window_end_ns: int
+    events_left: int
+    events_right: int
+    rectified_left: int
+    rectified_right: int
+    scales: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class FrontendFrame:
+    """One processed stereo frame.
+
+    ``left``/``right`` are what the features run on: uint8 ``(H, W)`` images in the rectified
+    frame cameras (fused, frames or events according to the mode). ``frame_left``/
+    ``frame_right`` are the rectified frames alone and ``events_left``/``events_right`` the
+    normalised E3CT warped into them, ``(H, W, C)`` float32 in [0, 1] (``None`` in mode
+    ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode
+    (``aps``, ``dvs``, ``frames``, ``events``).
+    """
+
+    index: int
+    t_ns: int
+    left: _U8
+    right: _U8
+    beta_left: float
+    beta_right: float
+    bias: str
+    bias_right: str
+    e3ct_stats: E3ctStats | None
+    frame_left: _U8
+    frame_right: _U8
+    events_left: _F32 | None
+    events_right: _F32 | None
+
+
+class _Done:
+    """End-of-stream marker of the prefetch queue."""
+
+
+class _Failed:
+    def __init__(self, error: BaseException) -> None:
+        self.error = error
+
+
+def _with_mode(config: _core.Config, mode: str) -> _core.Config:
+    """``config`` with ``[fusion] mode`` replaced (the Rust config has no setters)."""
+    text = config.to_toml()
+    head, sep, tail = text.partition("[fusion]")
+    if not sep:
+        raise InputError("the configuration has no [fusion] section", field="fusion")
+    tail = re.sub(r'(?m)^mode = ".*"$', f'mode = "{mode}"', tail, count=1)
+    return _core.Config.from_toml(head + sep + tail, "<frontend>")
+
+
+class Frontend:
+    """Iterates :class:`FrontendFrame` over a :class:`~dhptam.datasets.Sequence`.
+
+    Parameters
+    ----------
+    sequence
+        A loaded sequence (``load_tumvie``); it must stay open while iterating.
+    mode
+        ``fusion``, ``frames`` or ``events`` (see the module docstring).
+    config
+        Supplies ``[rectification]``, ``[events]`` and ``[fusion]``; defaults otherwise.
+        ``mode`` overrides ``[fusion] mode``.
+    prefetch
+        Frames computed ahead in a background thread (0: none, synchronous).
+    feature_counter
+        Optional ``f(rectified_frame) -> int`` giving the feature yield of a frame, fed to β
+        (fewer than ``[fusion] min_features`` switches to the DVS bias). Without it β uses the
+        exposure statistics only.
+    start, stop
+        Frame index range ``[start, stop)`` to iterate (default: all).
+    """
+
+    def __init__(
+        self,
+        sequence: Sequence,
+        mode: str = "fusion",
+        config: _core.Config | None = None,
+        prefetch: int = 2,
+        *,
+        feature_counter: Callable[[_U8], int] | None = None,
+        start: int = 0,
+        stop: int | None = None,
+    ) -> None:
+        if mode not in MODES:
+            raise InputError(f"mode must be one of {', '.join(MODES)}, got {mode!r}", field="mode")
+        if prefetch < 0:
+            raise InputError(f"prefetch must be >= 0, got {prefetch}", field="prefetch")
+        self.sequence = sequence
+        self.mode = mode
+        self.config = _with_mode(config or _core.Config(), mode)
+        self.prefetch = int(prefetch)
+        self.feature_counter = feature_counter
+        n = len(sequence.frames)
+        self.start = int(start)
+        self.stop = n if stop is None else min(int(stop), n)
+        if not 0 <= self.start <= self.stop:
+            raise InputError(f"frame range [{start}, {stop}) is not inside [0, {n})", field="start")
+        settings = self.config.to_dict()
+        self._events_cfg: dict[str, Any] = settings["events"]
+        fusion_cfg = settings["fusion"]
+        self.plane_depth_m: float = float(fusion_cfg["plane_depth_m"])
+        self.align_px: tuple[float, float] = (
+            float(fusion_cfg["align_px"][0]),
+            float(fusion_cfg["align_px"][1]),
+        )
+
+        calib = sequence.calibration
+        cams = calib.cameras
+        self.frame_rect = RectifiedStereo(
+            StereoRig(
+                cams["frame_left"], cams["frame_right"], calib.cam_from_cam("frame_right", "frame_left")
+            ),
+            self.config,
+        )
+        self._maps = {side: self.frame_rect.remap_tables(side) for side in ("left", "right")}
+        self.t_f_ns = np.asarray(sequence.frames.t_mid_ns, np.int64)
+        if np.any(np.diff(self.t_f_ns) <= 0):
+            k = int(np.argmax(np.diff(self.t_f_ns) <= 0)) + 1
+            raise InputError(
+                f"fusion times must increase; frame {k} is not after frame {k - 1}", field="frames"
+            )
+        if mode != "frames":
+            self.event_rect = RectifiedStereo(
+                StereoRig(
+                    cams["event_left"], cams["event_right"], calib.cam_from_cam("event_right", "event_left")
+                ),
+                self.config,
+            )
+            self._rectifiers = {
+                side: _core.EventRectifier(self.event_rect, side) for side in ("left", "right")
+            }
+            # Rectified frame camera ← rectified event camera, per side:
+            # rect_f ← f (rectifying rotation) ← e (rig extrinsics) ← rect_e (inverse rotation).
+            self.frame_from_event = {
+                side: SE3(self._rect_rotation(self.frame_rect, side))
+                @ calib.cam_from_cam(f"frame_{side}", f"event_{side}")
+                @ SE3(self._rect_rotation(self.event_rect, side)).inverse()
+                for side in ("left", "right")
+            }
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._queue: queue.Queue[Any] | None = None
+
+    @staticmethod
+    def _rect_rotation(rect: RectifiedStereo, side: str) -> _core.SO3:
+        return rect.rect_left_from_left if side == "left" else rect.rect_right_from_right
+
+    # -- geometry the back-end needs ------------------------------------------------------------
+
+    @property
+    def calibration(self) -> RectifiedCalibration:
+        """Rectified left frame camera intrinsics and baseline (what the SLAM back-end takes)."""
+        k = self.frame_rect.K
+        return RectifiedCalibration(
+            float(k[0, 0]),
+            float(k[1, 1]),
+            float(k[0, 2]),
+            float(k[1, 2]),
+            float(self.frame_rect.baseline_m),
+            int(self.frame_rect.width),
+            int(self.frame_rect.height),
+        )
+
+    @property
+    def rect_from_cam(self) -> SE3:
+        """Rectified left frame camera ← left frame camera (a pure rotation). A trajectory of
+        the rectified camera maps back with ``world_from_cam = world_from_rect @ rect_from_cam``."""
+        return SE3(self.frame_rect.rect_left_from_left)
+
+    def camera_poses(self, world_from_rect: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """``world_from_cam`` (N, 4, 4) of the left frame camera from the tracker's
+        ``world_from_rect`` (N, 4, 4) poses of the rectified left camera."""
+        poses = np.asarray(world_from_rect, np.float64)
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            raise InputError(f"world_from_rect must be (N, 4, 4), got {poses.shape}", field="world_from_rect")
+        return poses @ self.rect_from_cam.matrix()
+
+    def __len__(self) -> int:
+        return self.stop - self.start
+
+    def warp_event_pixels(
+        self,
+        side: str,
+        pixels: npt.ArrayLike,
+        depth_m: float | None = None,
+        align_px: tuple[float, float] | None = None,
+    ) -> npt.NDArray[np.float64]:
+        """Rectified frame-camera pixels ``(N, 2)`` of rectified event-camera ``pixels``
+        through the front-end's warp (plane at ``depth_m``, default :attr:`plane_depth_m`;
+        ``align_px`` default the configured δP_align); NaN behind the camera."""
+        if self.mode == "frames":
+            raise InputError("mode 'frames' has no event cameras set up", field="mode")
+        if side not in ("left", "right"):
+            raise InputError(f'side must be "left" or "right", got {side!r}', field="side")
+        ke, kf = self.event_rect.K, self.frame_rect.K
+        _, out = warp_to_frame(
+            np.zeros((1, 1, 1), np.float32),
+            [ke[0, 0], ke[1, 1], ke[0, 2], ke[1, 2]],
+            [kf[0, 0], kf[1, 1], kf[0, 2], kf[1, 2]],
+            self.frame_from_event[side],
+            width=1,
+            height=1,
+            depth_m=self.plane_depth_m if depth_m is None else float(depth_m),
+            align_px=self.align_px if align_px is None else align_px,
+            pixels=np.asarray(pixels, np.float64).reshape(-1, 2),
+        )
+        assert out is not None
+        return out
+
+    # -- one frame ---------------------------------------------------------------------------
+
+    def window_ns(self, index: int) -> tuple[int, int]:
+        """Event window ``[t_f^(k-1), t_f^k)`` of frame ``index`` (frame 0: as long as the next)."""
+        t1 = int(self.t_f_ns[index])
+        if index > 0:
+            return int(self.t_f_ns[index - 1]), t1
+        if len(self.t_f_ns) < 2:
+            raise InputError("a one-frame sequence has no window length for its events", field="frames")
+        return t1 - int(self.t_f_ns[1] - self.t_f_ns[0]), t1
+
+    def _rectify_frame(self, image: _U8, side: str) -> _U8:
+        import cv2
+
+        map_x, map_y = self._maps[side]
+        return np.asarray(
+            cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT), np.uint8
+        )
+
+    def _rectified_events(self, side: str, t0: int, t1: int) -> tuple[EventWindow, int]:
+        raw = self.sequence.events[side].window(t0, t1)
+        x, y, t, p = self._rectifiers[side].apply(raw.x, raw.y, raw.t_ns, raw.p, t0, t1)
+        return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw)
+
+    def _warped_events(self, t0: int, t1: int) -> tuple[dict[str, _F32], E3ctStats]:
+        cfg = self._events_cfg
+        w, h = int(self.event_rect.width), int(self.event_rect.height)
+        raw_counts: dict[str, int] = {}
+        tensors = []
+        rect_counts: dict[str, int] = {}
+        for side in ("left", "right"):
+            window, raw_counts[side] = self._rectified_events(side, t0, t1)
+            rect_counts[side] = len(window)
+            tensors.append(
+                e3ct(
+                    window.x,
+                    window.y,
+                    window.t_ns,
+                    window.p,
+                    width=w,
+                    height=h,
+                    t_start_ns=t0,
+                    t_end_ns=t1,
+                    alpha=cfg["alpha"],
+                    eta_ms=cfg["eta_ms"],
+                    channels=cfg["channels"],
+                    polarity=cfg["polarity"],
+                )
+            )
+        normalised, scales = normalise(*tensors, percentile=cfg["normalise_percentile"])
+        k_event = self.event_rect.K
+        k_frame = self.frame_rect.K
+        ke = [k_event[0, 0], k_event[1, 1], k_event[0, 2], k_event[1, 2]]
+        kf = [k_frame[0, 0], k_frame[1, 1], k_frame[0, 2], k_frame[1, 2]]
+        out = {}
+        for side, tensor in zip(("left", "right"), normalised, strict=True):
+            warped, _ = warp_to_frame(
+                tensor,
+                ke,
+                kf,
+                self.frame_from_event[side],
+                width=int(self.frame_rect.width),
+                height=int(self.frame_rect.height),
+                depth_m=self.plane_depth_m,
+                align_px=self.align_px,
+            )
+            out[side] = warped
+        stats = E3ctStats(
+            window_start_ns=t0,
+            window_end_ns=t1,
+            events_left=raw_counts["left"],
+            events_right=raw_counts["right"],
+            rectified_left=rect_counts["left"],
+            rectified_right=rect_counts["right"],
+            scales=tuple(float(s) for s in scales),
+        )
+        return out, stats
+
+    def process(self, index: int) -> FrontendFrame:
+        """Runs the pipeline on frame ``index`` in the calling thread."""
+        pair = self.sequence.frames[index]
+        frames = {
+            "left": self._rectify_frame(pair.left, "left"),
+            "right": self._rectify_frame(pair.right, "right"),
+        }
+        t_ns = int(self.t_f_ns[index])
+        if self.mode == "frames":
+            return FrontendFrame(
+                index, t_ns, frames["left"], frames["right"], 0.0, 0.0, "frames", "frames", None,
+                frames["left"], frames["right"], None, None,
+            )  # fmt: skip
+        t0, t1 = self.window_ns(index)
+        events, stats = self._warped_events(t0, t1)
+        images: dict[str, _U8] = {}
+        betas: dict[str, tuple[str, float]] = {}
+        for side in ("left", "right"):
+            if self.mode == "events":
+                betas[side] = ("events", 1.0)
+            else:
+                count = None if self.feature_counter is None else int(self.feature_counter(frames[side]))
+                d = choose_beta(frames[side], count, self.config)
+                betas[side] = (d.bias, d.beta)
+            # fuse() takes the per-pixel largest channel as the event intensity D.
+            images[side] = fuse(frames[side], events[side], betas[side][1])
+        return FrontendFrame(
+            index=index,
+            t_ns=t_ns,
+            left=images["left"],
+            right=images["right"],
+            beta_left=betas["left"][1],
+            beta_right=betas["right"][1],
+            bias=betas["left"][0],
+            bias_right=betas["right"][0],
+            e3ct_stats=stats,
+            frame_left=frames["left"],
+            frame_right=frames["right"],
+            events_left=events["left"],
+            events_right=events["right"],
+        )
+
+    # -- iteration with prefetch ---------------------------------------------------------------
+
+    def _produce(self, q: queue.Queue[Any]) -> None:
+        def put(item: Any) -> bool:
+            while not self._stop.is_set():
+                try:
+                    q.put(item, timeout=0.05)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+
+        try:
+            for k in range(self.start, self.stop):
+                if self._stop.is_set() or not put(self.process(k)):
+                    return
+            put(_Done())
+        except BaseException as error:  # handed to the consumer, which re-raises it
+            put(_Failed(error))
+
+    def __iter__(self) -> Iterator[FrontendFrame]:
+        if self.prefetch == 0:
+            for k in range(self.start, self.stop):
+                yield self.process(k)
+            return
+        self.close()
+        self._stop.clear()
+        q: queue.Queue[Any] = queue.Queue(maxsize=self.prefetch)
+        self._queue = q
+        self._thread = threading.Thread(target=self._produce, args=(q,), name="dhptam-frontend", daemon=True)
+        self._thread.start()
+        try:
+            while True:
+                item = q.get()
+                if isinstance(item, _Done):
+                    return
+                if isinstance(item, _Failed):
+                    raise item.error
+                yield item
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stops the prefetch thread (if any) and joins it."""
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            if self._queue is not None:
+                while True:
+                    try:
+                        self._queue.get_nowait()
+                    except queue.Empty:
+                        break
+            thread.join()
+        self._queue = None
+
+    def __enter__(self) -> Frontend:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+__all__ = ["MODES", "E3ctStats", "Frontend", "FrontendFrame", "RectifiedCalibration"]

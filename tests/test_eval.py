@@ -1,0 +1,240 @@
+"""TUM trajectories (dhptam.trajectory) and their evaluation (dhptam.eval, dhptam eval)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dhptam import SE3, SO3
+from dhptam.cli import main
+from dhptam.errors import ConfigError, FileError, InputError, ParseError
+from dhptam.eval import Trajectory, coverage, evaluate, load_trajectory, read_suite, run_suite
+from dhptam.trajectory import read_tum, rows_to_matrices, write_tum
+
+_NS = 1_000_000_000
+
+
+def _circle(n: int = 40, radius: float = 1.0) -> Trajectory:
+    """A camera going once around a horizontal circle, 20 Hz, yawing with the motion."""
+    t = np.arange(n, dtype=np.int64) * 50_000_000 + 1_700_000_000 * _NS
+    angles = 2 * np.pi * np.arange(n) / n
+    rows = np.zeros((n, 7))
+    rows[:, 0], rows[:, 1] = radius * np.cos(angles), radius * np.sin(angles)
+    rows[:, 2] = 0.3
+    for i, a in enumerate(angles):
+        rows[i, 3:] = SO3.exp([0.0, 0.0, a]).quat_xyzw()
+    return Trajectory(t, rows, "circle")
+
+
+def test_write_tum_round_trips_exactly_and_evo_reads_it(tmp_path: Path) -> None:
+    from evo.tools import file_interface
+
+    ref = _circle()
+    path = tmp_path / "sub" / "traj.tum"
+    write_tum(path, ref.t_ns, rows_to_matrices(ref.rows))
+    t_ns, rows = read_tum(path)
+    assert np.array_equal(t_ns, ref.t_ns)  # nanoseconds survive the text file exactly
+    # A quaternion and its negative are the same rotation; compare the matrices.
+    assert np.allclose(rows_to_matrices(rows), rows_to_matrices(ref.rows), atol=1e-9)
+    evo_traj = file_interface.read_tum_trajectory_file(str(path))
+    assert np.allclose(evo_traj.timestamps, ref.t_ns / _NS, rtol=0, atol=1e-6)
+    assert np.allclose(evo_traj.positions_xyz, ref.rows[:, :3], atol=1e-9)
+    assert np.allclose(
+        np.abs(np.sum(evo_traj.orientations_quat_wxyz * ref.rows[:, [6, 3, 4, 5]], axis=1)), 1.0
+    )
+    assert not [p for p in path.parent.iterdir() if p.name != "traj.tum"]  # no temporary left
+
+
+def test_write_tum_rejects_bad_input(tmp_path: Path) -> None:
+    poses = np.tile(np.eye(4), (2, 1, 1))
+    with pytest.raises(InputError, match="increase"):
+        write_tum(tmp_path / "a.tum", [5, 5], poses)
+    with pytest.raises(InputError, match="2 times but 3 poses"):
+        write_tum(tmp_path / "a.tum", [1, 2], np.tile(np.eye(4), (3, 1, 1)))
+    with pytest.raises(InputError, match="shape"):
+        write_tum(tmp_path / "a.tum", [1, 2], np.zeros((2, 3)))
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("line", "message", "field"),
+    [
+        ("1.0 0 0 0 0 0 0", "expected 8 values", "columns"),
+        ("1.0 0 0 zero 0 0 0 1", "not a number", "pose"),
+        ("one 0 0 0 0 0 0 1", "timestamp", "timestamp"),
+        ("1.0 0 0 0 0 0 0 2", "norm", "quaternion"),
+        ("0.5 0 0 0 0 0 0 1", "not after the one on line 2", "timestamp"),
+    ],
+)
+def test_bad_tum_lines_are_errors_naming_file_and_line(
+    tmp_path: Path, line: str, message: str, field: str
+) -> None:
+    path = tmp_path / "bad.tum"
+    path.write_text("# header\n0.9 0 0 0 0 0 0 1\n" + line + "\n")
+    with pytest.raises(ParseError, match=message) as info:
+        read_tum(path)
+    assert info.value.path == str(path) and info.value.line == 3 and info.value.field == field
+    assert f"{path}:3" in str(info.value)
+
+
+def test_missing_or_empty_files_are_errors(tmp_path: Path) -> None:
+    with pytest.raises(FileError, match="not found"):
+        read_tum(tmp_path / "none.tum")
+    (tmp_path / "empty.tum").write_text("# nothing\n")
+    with pytest.raises(ParseError, match="no poses"):
+        read_tum(tmp_path / "empty.tum")
+
+
+def test_perturbed_copy_has_the_known_ate() -> None:
+    """Alternating ±d offsets along z on a circle with an even number of poses: they have
+    zero mean and no correlation with the positions, so Umeyama leaves the copy where it is
+    and the ATE RMSE is exactly d."""
+    ref = _circle(40)
+    d = 0.02
+    rows = ref.rows.copy()
+    rows[:, 2] += d * (-1.0) ** np.arange(len(ref))
+    result = evaluate(Trajectory(ref.t_ns, rows), ref, align="se3")
+    assert result.ate_rmse_m == pytest.approx(d, rel=1e-6)
+    assert result.ape["max"] == pytest.approx(d, rel=1e-6)
+    assert result.rotation_deg == pytest.approx(0.0, abs=1e-6)
+    assert result.coverage == 1.0 and result.poses_matched == 40
+    # Consecutive poses move by 2d relative to each other along z.
+    assert result.rpe["rmse"] == pytest.approx(2 * d, rel=1e-6)
+    assert result.ate_percent_of_path == pytest.approx(100 * d / result.path_length_m)
+
+
+def test_se3_alignment_removes_a_rigid_motion_and_sim3_a_scale() -> None:
+    ref = _circle(40)
+    moved = SE3(SO3.exp([0.2, -0.1, 0.7]), [3.0, -1.0, 0.5])
+    scale = 0.37
+    m = rows_to_matrices(ref.rows)
+    est_rigid = np.einsum("ij,njk->nik", moved.matrix(), m)
+    est_scaled = est_rigid.copy()
+    est_scaled[:, :3, 3] *= scale
+    rigid = evaluate(Trajectory.from_poses(ref.t_ns, est_rigid), ref, align="se3")
+    assert rigid.ate_rmse_m < 1e-9 and rigid.scale == 1.0
+    wrong = evaluate(Trajectory.from_poses(ref.t_ns, est_scaled), ref, align="se3")
+    assert wrong.ate_rmse_m > 0.1
+    recovered = evaluate(Trajectory.from_poses(ref.t_ns, est_scaled), ref, align="sim3")
+    assert recovered.ate_rmse_m < 1e-9
+    assert recovered.scale == pytest.approx(1.0 / scale, rel=1e-9)
+
+
+def test_reference_is_interpolated_at_estimate_times() -> None:
+    ref = _circle(400)  # 20 Hz, 20 s
+    est_t = ref.t_ns[10:-10:7] + 13_000_000  # between reference stamps
+    from dhptam.eval import interpolate
+
+    rows, ok = interpolate(ref, est_t, max_gap_s=0.1)
+    assert ok.all()
+    # On the circle the interpolated position stays within the chord's sagitta of the truth.
+    angles = 2 * np.pi * ((est_t - ref.t_ns[0]) / 50_000_000) / 400
+    truth = np.c_[np.cos(angles), np.sin(angles)]
+    assert np.abs(rows[:, :2] - truth).max() < 1e-4
+    _, ok_far = interpolate(ref, est_t, max_gap_s=0.01)  # reference samples are 50 ms apart
+    assert not ok_far.any()
+
+
+def test_coverage_counts_the_tracked_part_of_the_reference_span() -> None:
+    ref_t = np.arange(0, 101, dtype=np.int64) * 100_000_000  # 0–10 s
+    est_t = np.r_[np.arange(0, 31), np.arange(80, 101)].astype(np.int64) * 100_000_000  # lost 3–8 s
+    assert coverage(ref_t, est_t) == pytest.approx(0.5)
+    assert coverage(ref_t, ref_t) == 1.0
+    assert coverage(ref_t, est_t[:1]) == 0.0
+
+
+def test_too_few_matched_poses_is_an_error() -> None:
+    ref = _circle(40)
+    late = Trajectory(ref.t_ns + 100 * _NS, ref.rows, "late.tum")
+    with pytest.raises(InputError, match=r"late.tum: only 0 of 40"):
+        evaluate(late, ref)
+    with pytest.raises(InputError, match="align"):
+        evaluate(ref, ref, align="se2")
+
+
+def test_cli_eval_writes_json_and_plots(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ref = _circle(40)
+    rows = ref.rows.copy()
+    rows[:, 2] += 0.01 * (-1.0) ** np.arange(40)
+    write_tum(tmp_path / "ref.tum", ref.t_ns, ref.rows)
+    write_tum(tmp_path / "est.tum", ref.t_ns, rows)
+    out = tmp_path / "out"
+    code = main(
+        [
+            "eval",
+            "--estimate",
+            str(tmp_path / "est.tum"),
+            "--reference",
+            str(tmp_path / "ref.tum"),
+            "--align",
+            "se3",
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 0
+    assert "ATE RMSE 0.0100 m" in capsys.readouterr().out
+    doc = json.loads((out / "eval.json").read_text())
+    assert doc["ate_rmse_m"] == pytest.approx(0.01, rel=1e-6) and doc["align"] == "se3"
+    for name in ("eval_trajectories.png", "eval_errors.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (tmp_path / "broken.tum").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0\n")
+    code = main(
+        [
+            "eval",
+            "--estimate",
+            str(tmp_path / "broken.tum"),
+            "--reference",
+            str(tmp_path / "ref.tum"),
+            "--out",
+            str(out),
+        ]
+    )
+    assert code == 2
+    assert "broken.tum:2" in capsys.readouterr().err
+
+
+def test_suite_gives_a_comparison_table(tmp_path: Path) -> None:
+    ref = _circle(40)
+    write_tum(tmp_path / "ref.tum", ref.t_ns, ref.rows)
+    for name, d in (("good", 0.01), ("bad", 0.05)):
+        rows = ref.rows.copy()
+        rows[:, 2] += d * (-1.0) ** np.arange(40)
+        write_tum(tmp_path / f"{name}.tum", ref.t_ns, rows)
+    write_tum(tmp_path / "half.tum", ref.t_ns[:20], ref.rows[:20])
+    suite = tmp_path / "suite.toml"
+    suite.write_text(
+        'align = "se3"\n'
+        '[[run]]\nmethod = "fusion"\nsequence = "circle"\nestimate = "good.tum"\nreference = "ref.tum"\n'
+        '[[run]]\nmethod = "frames"\nsequence = "circle"\nestimate = "bad.tum"\nreference = "ref.tum"\n'
+        '[[run]]\nmethod = "frames"\nsequence = "circle-b"\nestimate = "half.tum"\nreference = "ref.tum"\n'
+    )
+    table, results = run_suite(suite, tmp_path / "out")
+    lines = table.splitlines()
+    assert lines[0] == "| method | circle | circle-b |"
+    assert lines[2] == "| fusion | 0.010 | – |"
+    assert lines[3].startswith("| frames | 0.050 | 0.000 (")  # half the span: coverage shown
+    assert results[("frames", "circle-b")].coverage == pytest.approx(19 / 39)
+    assert (tmp_path / "out" / "table.md").read_text().endswith(table)
+    assert len(json.loads((tmp_path / "out" / "summary.json").read_text())) == 3
+    suite.write_text(
+        '[[run]]\nmethod = "a"\nsequence = "b"\nestimate = "good.tum"\nreference = "ref.tum"\nscale = 2\n'
+    )
+    with pytest.raises(ConfigError, match=r"run\[0\] has unknown keys \['scale'\]"):
+        read_suite(suite)
+
+
+def test_tum_vie_mocap_reference_matches_the_camera_ground_truth(sim_tiny: Path) -> None:
+    """The simulator writes both the mocap marker poses and the left camera's poses; read
+    through the TUM-VIE mocap path with the calibration files, they are the same trajectory."""
+    camera_truth = load_trajectory(sim_tiny / "groundtruth_frame_left.txt", "tum")
+    mocap = load_trajectory(sim_tiny / "mocap_data.txt", "tum-vie-mocap")
+    assert mocap.t_ns[0] == 0 and len(mocap) > 100
+    result = evaluate(camera_truth, mocap, align="se3")
+    assert result.ate_rmse_m < 1e-5
+    assert result.rotation_deg < 1e-3  # no alignment needed: same world frame
+    with pytest.raises(InputError, match=r"mocap_data\.txt"):
+        load_trajectory(sim_tiny / "groundtruth_frame_left.txt", "tum-vie-mocap")

@@ -1,0 +1,205 @@
+"""The per-frame front-end (dhptam.frontend) on a simulated HDR sequence."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from sim_truth import simulator_like
+
+from dhptam import SE3, SO3, _core
+from dhptam.datasets import load_tumvie
+from dhptam.errors import InputError
+from dhptam.frontend import MODES, Frontend
+
+_NS = 1_000_000_000
+
+
+@pytest.fixture
+def sequence(sim_tiny: Path):  # type: ignore[no-untyped-def]
+    with load_tumvie(sim_tiny) as seq:
+        yield seq
+
+
+def _frontend_threads() -> list[threading.Thread]:
+    return [t for t in threading.enumerate() if t.name == "dhptam-frontend"]
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_images_have_the_rectified_size_and_the_mode_beta(sequence, mode: str) -> None:  # type: ignore[no-untyped-def]
+    fe = Frontend(sequence, mode, stop=4)
+    calib = fe.calibration
+    frames = list(fe)
+    assert [f.index for f in frames] == [0, 1, 2, 3]
+    for f in frames:
+        assert f.t_ns == int(sequence.frames.t_mid_ns[f.index])
+        for image in (f.left, f.right, f.frame_left, f.frame_right):
+            assert image.shape == (calib.height, calib.width)
+            assert image.dtype == np.uint8
+        if mode == "frames":
+            assert (f.beta_left, f.beta_right, f.bias) == (0.0, 0.0, "frames")
+            assert np.array_equal(f.left, f.frame_left)
+            assert f.e3ct_stats is None
+        elif mode == "events":
+            assert (f.beta_left, f.bias) == (1.0, "events")
+            assert f.events_left is not None
+            assert f.events_left.shape == (calib.height, calib.width, 3)
+            intensity = np.round(255.0 * f.events_left.max(axis=2)).astype(np.uint8)
+            assert np.abs(f.left.astype(int) - intensity).max() <= 1
+        else:
+            assert f.bias in ("aps", "dvs")
+            assert 0.0 <= f.beta_left <= 1.0
+    if mode != "frames":
+        # Window k is [t_f^(k-1), t_f^k), frame 0's as long as frame 1's.
+        stats = [f.e3ct_stats for f in frames]
+        assert stats[1] is not None and stats[0] is not None
+        assert stats[1].window_start_ns == frames[0].t_ns
+        assert stats[0].window_end_ns - stats[0].window_start_ns == frames[1].t_ns - frames[0].t_ns
+        assert stats[2] is not None and 0 < stats[2].rectified_left <= stats[2].events_left
+
+
+def test_calibration_and_rect_from_cam_describe_the_rectified_left_camera(sequence) -> None:  # type: ignore[no-untyped-def]
+    fe = Frontend(sequence, "frames")
+    fx, fy, cx, cy, baseline, width, height = fe.calibration
+    assert (width, height) == (fe.frame_rect.width, fe.frame_rect.height)
+    assert baseline == pytest.approx(0.1, abs=2e-3)  # the rig's frame cameras are 10 cm apart
+    cam = sequence.calibration.cameras["frame_left"]
+    p_cam = np.array([[0.1, -0.05, 1.5], [-0.3, 0.2, 2.5]])
+    # A point seen by the left frame camera lands, through rect_from_cam and the rectified K,
+    # where the rectification table sends its raw pixel.
+    p_rect = fe.rect_from_cam @ p_cam
+    uv = np.c_[fx * p_rect[:, 0] / p_rect[:, 2] + cx, fy * p_rect[:, 1] / p_rect[:, 2] + cy]
+    expected = fe.frame_rect.rectify_pixels("left", cam.project(p_cam))
+    assert np.allclose(uv, expected, atol=1e-6)
+    # Poses of the rectified camera map back: the camera's origin and axes seen from the world.
+    world_from_rect = SE3(SO3.exp([0.1, 0.2, -0.3]), [1.0, 2.0, 3.0]).matrix()
+    world_from_cam = fe.camera_poses(world_from_rect[None])[0]
+    assert np.allclose(
+        world_from_cam[:3, :3] @ p_cam[0] + world_from_cam[:3, 3],
+        world_from_rect[:3, :3] @ p_rect[0] + world_from_rect[:3, 3],
+    )
+
+
+def test_prefetch_gives_the_synchronous_results(sequence) -> None:  # type: ignore[no-untyped-def]
+    sync = list(Frontend(sequence, "fusion", prefetch=0, stop=5))
+    threaded = list(Frontend(sequence, "fusion", prefetch=2, stop=5))
+    assert len(sync) == len(threaded) == 5
+    for a, b in zip(sync, threaded, strict=True):
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+        assert (a.beta_left, a.bias) == (b.beta_left, b.bias)
+    assert not _frontend_threads()
+
+
+def test_worker_exceptions_reach_the_consumer_and_the_thread_is_joined(sequence) -> None:  # type: ignore[no-untyped-def]
+    def counter(image: np.ndarray) -> int:
+        counter.calls += 1  # type: ignore[attr-defined]
+        if counter.calls == 3:  # type: ignore[attr-defined]
+            raise RuntimeError("feature counter failed on purpose")
+        return 500
+
+    counter.calls = 0  # type: ignore[attr-defined]
+    fe = Frontend(sequence, "fusion", prefetch=2, feature_counter=counter)
+    seen: list[int] = []
+
+    def consume() -> None:
+        for f in fe:
+            seen.append(f.index)
+
+    with pytest.raises(RuntimeError, match="on purpose"):
+        consume()
+    assert seen == [0]  # frame 1's second counter call raised
+    assert not _frontend_threads()
+
+
+def test_stopping_early_joins_the_prefetch_thread(sequence) -> None:  # type: ignore[no-untyped-def]
+    fe = Frontend(sequence, "fusion", prefetch=2)
+    it = iter(fe)
+    assert next(it).index == 0
+    assert _frontend_threads()
+    it.close()  # type: ignore[attr-defined]
+    assert not _frontend_threads()
+
+
+def test_bad_arguments_are_errors(sequence) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(InputError, match="mode"):
+        Frontend(sequence, "stereo")
+    with pytest.raises(InputError, match="prefetch"):
+        Frontend(sequence, prefetch=-1)
+
+
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_event_to_frame_warp_with_true_depth_lands_on_the_same_3d_point(sequence, side: str) -> None:  # type: ignore[no-untyped-def]
+    """Issue 5: with ground-truth depth and δP_align = 0, event pixels land within 0.5 px of
+    the frame pixels of the same 3-D point (both in the rectified cameras)."""
+    fe = Frontend(sequence, "fusion")
+    sim = simulator_like("tiny")
+    calib = sequence.calibration
+    cam_e, cam_f = calib.cameras[f"event_{side}"], calib.cameras[f"frame_{side}"]
+    t_ns = int(sequence.frames.t_mid_ns[5])
+    depth = sim.render_depth(2 if side == "left" else 3, t_ns)
+    v, u = np.mgrid[4 : cam_e.height - 4 : 5, 4 : cam_e.width - 4 : 5]
+    raw = np.c_[u.ravel(), v.ravel()].astype(np.float64)
+    z = depth[v.ravel(), u.ravel()].astype(np.float64)
+    bearings = cam_e.unproject(raw)
+    p_event = bearings * (z / bearings[:, 2])[:, None]
+    # Truth: the 3-D point projected by the frame camera, then rectified.
+    p_frame = calib.cam_from_cam(f"frame_{side}", f"event_{side}") @ p_event
+    truth = fe.frame_rect.rectify_pixels(side, cam_f.project(p_frame))
+    # Warp: the event pixel rectified, through the plane at the point's rectified depth.
+    rect_e = fe.event_rect.rectify_pixels(side, raw)
+    rotation = fe.event_rect.rect_left_from_left if side == "left" else fe.event_rect.rect_right_from_right
+    z_rect = (rotation @ p_event)[:, 2]
+    ok = np.isfinite(truth).all(axis=1) & np.isfinite(rect_e).all(axis=1) & np.isfinite(z_rect)
+    assert ok.sum() > 100
+    warped = np.array(
+        [fe.warp_event_pixels(side, rect_e[i], depth_m=z_rect[i])[0] for i in np.flatnonzero(ok)]
+    )
+    error = np.linalg.norm(warped - truth[ok], axis=1)
+    assert error.max() < 0.5, error.max()
+    # The scene is 1–3 m away and the cameras a few cm apart: the warp at infinity misses by
+    # about a pixel at this resolution, so the depth really mattered.
+    at_infinity = np.array(
+        [fe.warp_event_pixels(side, rect_e[i], depth_m=0.0)[0] for i in np.flatnonzero(ok)]
+    )
+    assert np.median(np.linalg.norm(at_infinity - truth[ok], axis=1)) > 0.5
+    # The lookup table rounds to the nearest rectified event pixel (≤ 0.71 px there, scaled by
+    # f_frame / f_event here); its median error stays under half a pixel too.
+    table = fe._rectifiers[side].lookup(raw.astype(np.int64))
+    ok_t = ok & np.isfinite(table).all(axis=1)
+    warped_t = np.array(
+        [fe.warp_event_pixels(side, table[i], depth_m=z_rect[i])[0] for i in np.flatnonzero(ok_t)]
+    )
+    assert np.median(np.linalg.norm(warped_t - truth[ok_t], axis=1)) < 0.5
+
+
+def _orb_count(image: np.ndarray) -> int:
+    # 128-pixel images: a small border and patch so that ORB can use most of the image.
+    orb = cv2.ORB_create(nfeatures=2000, edgeThreshold=8, patchSize=15, fastThreshold=10)
+    return len(orb.detect(image, None))
+
+
+def test_hdr_beta_switches_to_dvs_in_dark_and_bright_segments_and_fusion_adds_features(sequence) -> None:  # type: ignore[no-untyped-def]
+    """Issue 5: on the ``hdr`` profile β is DVS-biased in the dark and bright segments and
+    APS-biased again afterwards; there the fused image has more ORB features than the frame."""
+    frames = list(Frontend(sequence, "fusion"))
+    duration_s = 1.0  # the tiny preset
+    segments = _core.sim_profile_segments("hdr")
+    checked = {"dark": 0, "bright": 0, "after": 0}
+    last_normal_start = segments[-1][1] * duration_s
+    for f in frames:
+        t = f.t_ns / _NS
+        kind = next((name for name, a, b in segments if a * duration_s <= t < b * duration_s), None)
+        if kind in ("dark", "bright"):
+            assert f.bias == "dvs" and f.bias_right == "dvs", (f.index, t, kind)
+            assert f.beta_left >= 0.5
+            fused, frame = _orb_count(f.left), _orb_count(f.frame_left)
+            assert fused > frame, (f.index, kind, fused, frame)
+            checked[kind] += 1
+        elif t >= last_normal_start:
+            assert f.bias == "aps", (f.index, t)
+            assert f.beta_left <= 0.5
+            checked["after"] += 1
+    assert checked["dark"] >= 3 and checked["bright"] >= 2 and checked["after"] >= 2, checked
