@@ -44,7 +44,7 @@ from .. import _core
 from ..errors import InputError
 from .base import Extractor, Features
 
-__all__ = ["EXTRACTORS", "Extractor", "Features", "load", "match"]
+__all__ = ["EXTRACTORS", "Extractor", "Features", "from_config", "load", "match"]
 
 #: Names accepted by :func:`load`.
 EXTRACTORS = ("superpoint", "r2d2", "orb", "sift")
@@ -105,6 +105,26 @@ def load(
     from .superpoint import SuperPoint
 
     return SuperPoint(path, max_keypoints=max_keypoints, device=device, threads=threads, **options)
+
+
+def from_config(config: _core.Config | None = None, **options: Any) -> Extractor:
+    """The extractor described by the ``[features]`` section of ``config`` (defaults if None).
+
+    ``options`` are passed on to :func:`load` (extractor-specific settings).
+
+    >>> from dhptam import Config, features
+    >>> features.from_config(Config.from_toml('[features]\\nextractor = "sift"\\nmax_keypoints = 50'))
+    SIFT(max_keypoints=50)
+    """
+    section = (config if config is not None else _core.Config()).to_dict()["features"]
+    return load(
+        section["extractor"],
+        section["weights"] or None,
+        section["device"],
+        int(section["max_keypoints"]),
+        threads=int(section["threads"]) or None,
+        **options,
+    )
 
 
 def _weights_path(extractor: str, weights: str | os.PathLike[str] | None) -> Path:
