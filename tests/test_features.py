@@ -242,3 +242,50 @@ def test_without_torch_orb_and_sift_run_and_learned_extractors_say_how_to_instal
     lines = result.stdout.strip().splitlines()
     assert len(lines) == 2
     assert all("pip install dhptam[features]" in line for line in lines)
+
+
+def test_r2d2_architectures_match_the_official_checkpoints() -> None:
+    from dhptam.features.r2d2 import architecture_from_string, load_checkpoint
+
+    quad = architecture_from_string("Quad_L2Net_ConfCFS()")
+    assert [c.dilation for c in quad.convs] == [1, 1, 1, 2, 4, 4, 4, 8, 16] and quad.upsample == 1
+    fast = architecture_from_string("Fast_Quad_L2Net_ConfCFS()")
+    assert [c.pool_after for c in fast.convs][2] == 2 and fast.upsample == 2
+    for name in ("r2d2_WASF_N16", "faster2d2_WASF_N16"):
+        net = load_checkpoint(shared_path("models", "r2d2", f"{name}.pt"))
+        x = torch.randn(2, 3, 48, 64)
+        with torch.inference_mode():
+            plain = net(x)
+            net.fuse()
+            folded = net(x)
+        for a, b in zip(plain, folded, strict=True):
+            torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+        descriptors, reliability, repeatability = folded
+        assert descriptors.shape == (2, 128, 48, 64) and reliability.shape == (2, 1, 48, 64)
+        assert float(repeatability.min()) >= 0 and float(repeatability.max()) <= 1
+    with pytest.raises(InputError, match="net"):
+        architecture_from_string("__import__('os').system('true')")
+    with pytest.raises(InputError, match="unsupported arguments"):
+        architecture_from_string("Quad_L2Net_ConfCFS(bn_affine=True)")
+
+
+def test_r2d2_pyramid_scales_and_thresholds() -> None:
+    path = shared_path("models", "r2d2", "r2d2_WASF_N16.pt")
+    extractor = features.load("r2d2", path, device="cpu", max_keypoints=5000)
+    assert extractor.scales_for(480, 640) == [1.0, 0.75, 0.5]  # type: ignore[attr-defined]
+    assert extractor.scales_for(180, 240) == [1.0, 0.75]  # type: ignore[attr-defined]
+    image = _camera()
+    many = extractor.extract_one(image)
+    assert many.scores.min() >= 0.7 * 0.7 - 1e-6  # reliability × repeatability, both ≥ 0.7
+    strict = features.load(
+        "r2d2", path, device="cpu", max_keypoints=5000, reliability_threshold=0.9, repeatability_threshold=0.9
+    ).extract_one(image)
+    assert 0 < len(strict) < len(many) and strict.scores.min() >= 0.81 - 1e-6
+    # Merging the scales leaves no two keypoints within 2 px (Chebyshev) of each other.
+    d = np.abs(many.keypoints[:, None, :] - many.keypoints[None, :, :]).max(axis=2)
+    np.fill_diagonal(d, np.inf)
+    assert d.min() > 1.0
+    unmerged = features.load("r2d2", path, device="cpu", max_keypoints=5000, merge_radius_px=0).extract_one(
+        image
+    )
+    assert len(unmerged) > len(many)
