@@ -289,3 +289,22 @@ def test_r2d2_pyramid_scales_and_thresholds() -> None:
         image
     )
     assert len(unmerged) > len(many)
+
+
+def test_bfloat16_trunk_agrees_with_float32() -> None:
+    image = _camera()
+    path = shared_path("models", "r2d2", "faster2d2_WASF_N16.pt")
+    full = features.load("r2d2", path, device="cpu", max_keypoints=200).extract_one(image)
+    half = features.load("r2d2", path, device="cpu", max_keypoints=200, precision="bfloat16").extract_one(
+        image
+    )
+    assert half.descriptors.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(half.descriptors, axis=1), 1.0, atol=1e-5)
+    # Most keypoints are found again within 1 px, with nearly the same descriptor.
+    d = np.linalg.norm(full.keypoints[:, None] - half.keypoints[None], axis=2)
+    near = d.min(axis=1) <= 1.0
+    assert near.mean() > 0.8
+    same = np.einsum("ij,ij->i", full.descriptors[near], half.descriptors[d.argmin(axis=1)[near]])
+    assert np.median(same) > 0.98
+    with pytest.raises(InputError, match="precision"):
+        features.load("r2d2", path, device="cpu", precision="int8")

@@ -109,11 +109,14 @@ def _measure(extractor: features.Extractor) -> dict[str, float]:
 # are these minus a margin.
 #   r2d2_WASF_N16      repeatability 0.745  precision 0.914  correct 576
 #   faster2d2_WASF_N16 repeatability 0.780  precision 0.903  correct 532
+#   faster2d2, one scale, bfloat16 trunk (the fast setting of docs/BENCHMARKS.md)
+#                      repeatability 0.766  precision 0.909  correct 438
 #   orb                repeatability 0.802  precision 0.930  correct 888
 #   sift               repeatability 0.726  precision 0.969  correct 819
 THRESHOLDS = {
     "r2d2_WASF_N16": (0.62, 0.80, 430),
     "faster2d2_WASF_N16": (0.65, 0.80, 400),
+    "faster2d2-fast": (0.64, 0.80, 330),
     "orb": (0.67, 0.82, 670),
     "sift": (0.60, 0.86, 610),
 }
@@ -131,6 +134,14 @@ def test_r2d2_repeatability_and_matching_precision(checkpoint: str) -> None:
     path = shared_path("models", "r2d2", f"{checkpoint}.pt")
     extractor = features.load("r2d2", path, device="cpu", max_keypoints=500)
     _check(checkpoint, _measure(extractor))
+
+
+def test_r2d2_fast_setting_keeps_its_quality() -> None:
+    path = shared_path("models", "r2d2", "faster2d2_WASF_N16.pt")
+    extractor = features.load(
+        "r2d2", path, device="cpu", max_keypoints=500, scales=(1.0,), precision="bfloat16"
+    )
+    _check("faster2d2-fast", _measure(extractor))
 
 
 @pytest.mark.parametrize("name", ["orb", "sift"])

@@ -79,7 +79,8 @@ def load(
         CPU threads of torch (``torch.set_num_threads``, process-wide) or OpenCV; None keeps
         the library default.
     options
-        Extractor-specific settings, e.g. ``scales`` for r2d2 or ``nms_radius`` for
+        Extractor-specific settings, e.g. ``precision="bfloat16"`` (network trunk in reduced
+        precision) for the learned extractors, ``scales`` for r2d2, ``nms_radius`` for
         superpoint (see :class:`~dhptam.features.r2d2.R2D2`,
         :class:`~dhptam.features.superpoint.SuperPoint`,
         :class:`~dhptam.features.classical.ORB`, :class:`~dhptam.features.classical.SIFT`).

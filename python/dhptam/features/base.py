@@ -7,6 +7,7 @@ Nothing here imports torch at module level: :func:`import_torch` does it on dema
 from __future__ import annotations
 
 import abc
+import contextlib
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -188,23 +189,55 @@ def resolve_device(device: str | None) -> torch.device:
     return resolved
 
 
+_PRECISIONS = ("float32", "bfloat16", "float16")
+
+
 class TorchExtractor(Extractor):
     """An extractor whose network runs in torch on ``device`` under ``torch.inference_mode``.
 
     ``threads`` (> 0) sets ``torch.set_num_threads``, a process-wide torch setting; None or 0
-    leaves torch's default (one thread per core).
+    leaves torch's default (one thread per core). ``precision`` is ``"float32"`` (default),
+    ``"bfloat16"`` or, on CUDA, ``"float16"`` for the network's forward pass (see
+    :meth:`autocast`).
     """
 
-    def __init__(self, max_keypoints: int, device: str | None = "auto", threads: int | None = None) -> None:
+    def __init__(
+        self,
+        max_keypoints: int,
+        device: str | None = "auto",
+        threads: int | None = None,
+        precision: str = "float32",
+    ) -> None:
         super().__init__(max_keypoints)
         self._torch = import_torch()
         self.device = resolve_device(device)
+        if precision not in _PRECISIONS:
+            raise InputError(
+                f"precision: expected one of {', '.join(_PRECISIONS)}, got {precision!r}", field="precision"
+            )
+        if precision == "float16" and self.device.type != "cuda":
+            raise InputError(
+                "precision: float16 needs a CUDA device; use bfloat16 on the CPU", field="precision"
+            )
+        self.precision = precision
         if threads is not None and int(threads) < 0:
             raise InputError(
                 f"threads: expected 0 (torch's default) or a positive count, got {threads}", field="threads"
             )
         if threads:
             self._torch.set_num_threads(int(threads))
+
+    def autocast(self) -> contextlib.AbstractContextManager[Any]:
+        """The context the network runs in: nothing for float32, else torch autocast.
+
+        bfloat16 uses the CPU's AMX/AVX-512 BF16 units where present (about 2–4× faster on a
+        Sapphire Rapids core) at the cost of ~3 significant digits in the network's
+        activations; everything after the network (NMS, sampling, normalisation) stays float32.
+        """
+        if self.precision == "float32":
+            return contextlib.nullcontext()
+        dtype = getattr(self._torch, self.precision)
+        return self._torch.autocast(device_type=self.device.type, dtype=dtype)
 
     def _extract_single(self, image: npt.NDArray[np.uint8]) -> Features:
         return self._run_batch([image])[0]

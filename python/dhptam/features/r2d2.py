@@ -194,13 +194,20 @@ class R2D2Net(nn.Module):
                 fused.append(op)
         self._fused = nn.Sequential(*fused)
 
+    def trunk(self, x: torch.Tensor) -> torch.Tensor:
+        """Normalised RGB (B, 3, H, W) → raw features (B, D, H, W)."""
+        if self._fused is not None:
+            return self._fused(x)
+        for op in self.ops:
+            x = op(x)
+        return x
+
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Normalised RGB (B, 3, H, W) → descriptors (B, D, H, W), reliability, repeatability (B, 1, H, W)."""
-        if self._fused is not None:
-            x = self._fused(x)
-        else:
-            for op in self.ops:
-                x = op(x)
+        return self.heads(self.trunk(x))
+
+    def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Raw features → unit-norm descriptors, reliability and repeatability maps."""
         squared = x * x
         reliability = F.softmax(self.clf(squared), dim=1)[:, 1:2]
         s = F.softplus(self.sal(squared))
@@ -245,13 +252,14 @@ class R2D2(TorchExtractor):
         max_keypoints: int = 1000,
         device: str | None = "auto",
         threads: int | None = None,
+        precision: str = "float32",
         scales: tuple[float, ...] = (1.0, 0.75, 0.5),
         min_size: int = 160,
         reliability_threshold: float = 0.7,
         repeatability_threshold: float = 0.7,
         merge_radius_px: int = 2,
     ) -> None:
-        super().__init__(max_keypoints, device, threads)
+        super().__init__(max_keypoints, device, threads, precision)
         if not scales or any(not (0.0 < s <= 1.0) for s in scales):
             raise InputError(f"scales: expected factors in (0, 1], got {scales}", field="scales")
         if merge_radius_px < 0:
@@ -298,7 +306,11 @@ class R2D2(TorchExtractor):
             image = rgb
             if (h, w) != (height, width):
                 image = F.interpolate(rgb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-            desc, rel, rep = self.net(image)
+            # Reduced precision (if asked) for the trunk only: the heads, whose outputs are
+            # thresholded and compared with their neighbours, run in float32.
+            with self.autocast():
+                raw = self.net.trunk(image)
+            desc, rel, rep = self.net.heads(raw.float())
             maxima = rep == F.max_pool2d(rep, 3, stride=1, padding=1)
             maxima &= rep >= self.repeatability_threshold
             maxima &= rel >= self.reliability_threshold

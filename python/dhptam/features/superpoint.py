@@ -78,7 +78,9 @@ class SuperPointNet(nn.Module):
             if i in (1, 3, 5):
                 x = F.max_pool2d(x, 2)
         logits = self.convPb(F.relu(self.convPa(x)))
-        prob = F.softmax(logits, dim=1)[:, :64]
+        # float32 from here on even under autocast: the heat map is thresholded and compared
+        # with its neighbours, which bfloat16's 8-bit mantissa would turn into ties.
+        prob = F.softmax(logits.float(), dim=1)[:, :64]
         heat = F.pixel_shuffle(prob, 8)  # channel 8·r + c of a cell → pixel (r, c) of the cell
         descriptors = self.convDb(F.relu(self.convDa(x)))
         return heat, descriptors
@@ -181,12 +183,13 @@ class SuperPoint(TorchExtractor):
         max_keypoints: int = 1000,
         device: str | None = "auto",
         threads: int | None = None,
+        precision: str = "float32",
         nms_radius: int = 4,
         detection_threshold: float = 0.005,
         remove_borders: int = 4,
         net: SuperPointNet | None = None,
     ) -> None:
-        super().__init__(max_keypoints, device, threads)
+        super().__init__(max_keypoints, device, threads, precision)
         if (weights is None) == (net is None):
             raise ValueError("SuperPoint: give exactly one of weights (a checkpoint path) and net")
         self.weights = Path(weights) if weights is not None else None
@@ -209,9 +212,10 @@ class SuperPoint(TorchExtractor):
         pad_h, pad_w = (-height) % 8, (-width) % 8
         if pad_h or pad_w:
             batch = F.pad(batch, (0, pad_w, 0, pad_h), mode="replicate")
-        heat, raw_desc = self.net(batch)
-        heat = heat[..., :height, :width]
-        desc_map = F.normalize(raw_desc, p=2, dim=1)
+        with self.autocast():
+            heat, raw_desc = self.net(batch)
+        heat = heat[..., :height, :width].float()
+        desc_map = F.normalize(raw_desc.float(), p=2, dim=1)
         suppressed = simple_nms(heat, self.nms_radius)
         border = self.remove_borders
         if border > 0:
