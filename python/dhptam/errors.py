@@ -56,11 +56,16 @@ class NumericalError(DhptamError, ArithmeticError):
     """A numerical procedure failed on valid input (degenerate geometry, no convergence)."""
 
 
+class MissingDependencyError(DhptamError, ImportError):
+    """An optional dependency is not installed; the message says which extra to install."""
+
+
 __all__ = [
     "ConfigError",
     "DhptamError",
     "FileError",
     "InputError",
+    "MissingDependencyError",
     "NumericalError",
     "ParseError",
 ]

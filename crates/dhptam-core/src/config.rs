@@ -224,6 +224,24 @@ config_section! {
     }
 }
 
+config_section! {
+    /// Keypoint extraction (`dhptam.features`, issue 6); read by `dhptam.features.from_config`.
+    FeaturesConfig {
+        /// Extractor: "r2d2", "superpoint", "orb" or "sift".
+        extractor: String = "r2d2".to_owned(),
+        /// Weight file of a learned extractor: a path, or a known name ("r2d2_WASF_N16",
+        /// "faster2d2_WASF_N16", "superpoint_v1"); empty for the extractor's default. Lookup
+        /// order: this path, $DHPTAM_WEIGHTS_DIR, the user cache, a checksum-verified download.
+        weights: String = String::new(),
+        /// Torch device: "auto" (CUDA when available, else CPU), "cpu", "cuda" or "cuda:N".
+        device: String = "auto".to_owned(),
+        /// CPU threads of torch (process-wide) or OpenCV; 0 keeps the library's default.
+        threads: u32 = 0,
+        /// Keypoints kept per image, best scores first.
+        max_keypoints: u32 = 1000,
+    }
+}
+
 impl LogConfig {
     fn check(&self) -> Result<()> {
         Ok(())
@@ -422,6 +440,35 @@ impl FusionConfig {
     }
 }
 
+impl FeaturesConfig {
+    fn check(&self) -> Result<()> {
+        check(
+            "features.extractor",
+            ["r2d2", "superpoint", "orb", "sift"].contains(&self.extractor.as_str()),
+            "\"r2d2\", \"superpoint\", \"orb\" or \"sift\"",
+            format!("{:?}", self.extractor),
+        )?;
+        let device_ok = match self.device.as_str() {
+            "auto" | "cpu" | "cuda" => true,
+            other => other
+                .strip_prefix("cuda:")
+                .is_some_and(|n| n.parse::<u32>().is_ok()),
+        };
+        check(
+            "features.device",
+            device_ok,
+            "\"auto\", \"cpu\", \"cuda\" or \"cuda:N\"",
+            format!("{:?}", self.device),
+        )?;
+        check(
+            "features.max_keypoints",
+            self.max_keypoints > 0,
+            "a positive count",
+            self.max_keypoints,
+        )
+    }
+}
+
 fn check(key: &str, ok: bool, expected: &str, got: impl ToString) -> Result<()> {
     if ok {
         Ok(())
@@ -466,6 +513,8 @@ config_root! {
     fusion: FusionConfig,
     /// `[sim]`
     sim: SimConfig,
+    /// `[features]`
+    features: FeaturesConfig,
 }
 
 impl Config {
@@ -573,6 +622,23 @@ mod tests {
         );
         let err = Config::from_toml_str("[log]\nlevel = \"loud\"\n", "x.toml").unwrap_err();
         assert!(err.to_string().contains("loud"), "{err}");
+    }
+
+    #[test]
+    fn features_section_checks_extractor_and_device() {
+        let c = Config::from_toml_str(
+            "[features]\nextractor = \"sift\"\ndevice = \"cuda:1\"\n",
+            "f.toml",
+        )
+        .unwrap();
+        assert_eq!(c.features.extractor, "sift");
+        assert_eq!(c.features.max_keypoints, 1000);
+        let err =
+            Config::from_toml_str("[features]\nextractor = \"surf\"\n", "f.toml").unwrap_err();
+        assert!(err.to_string().contains("features.extractor"), "{err}");
+        let err =
+            Config::from_toml_str("[features]\ndevice = \"gpu\"\n", "f.toml").unwrap_err();
+        assert!(err.to_string().contains("features.device"), "{err}");
     }
 
     #[test]

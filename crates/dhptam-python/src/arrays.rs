@@ -125,3 +125,54 @@ fn shape_of(obj: &Bound<'_, PyAny>) -> String {
             .unwrap_or_default(),
     }
 }
+
+// --- float32 arrays from dhptam.features (keypoints (N, 2), scores (N,)) ---------------------
+
+fn ascontiguous_f32<'py>(obj: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyAny>> {
+    let py = obj.py();
+    let kwargs = PyDict::new(py);
+    kwargs.set_item("dtype", "float32")?;
+    py.import("numpy")?
+        .getattr("ascontiguousarray")?
+        .call((obj,), Some(&kwargs))
+}
+
+/// An (N, cols) float32 array, read in place when it already is a C-contiguous one (as
+/// `dhptam.features` produces keypoints); anything else numpy can convert is converted once.
+pub fn rows_f32<'py>(
+    obj: &Bound<'py, PyAny>,
+    cols: usize,
+    name: &str,
+) -> PyResult<PyReadonlyArray2<'py, f32>> {
+    let expected = format!("an (N, {cols}) float32 array");
+    let array = match obj.extract::<PyReadonlyArray2<'py, f32>>() {
+        Ok(a) if a.is_c_contiguous() => a,
+        _ => ascontiguous_f32(obj)
+            .and_then(|c| c.extract().map_err(Into::into))
+            .map_err(|_| input_error(name, &expected, shape_of(obj)))?,
+    };
+    if array.shape()[1] != cols {
+        return Err(input_error(
+            name,
+            &expected,
+            format!("shape {:?}", array.shape()),
+        ));
+    }
+    Ok(array)
+}
+
+/// A float32 vector, read in place when it already is a contiguous one (as `dhptam.features`
+/// produces scores); anything else numpy can convert is converted once.
+pub fn values_f32<'py>(
+    obj: &Bound<'py, PyAny>,
+    name: &str,
+) -> PyResult<PyReadonlyArray1<'py, f32>> {
+    if let Ok(a) = obj.extract::<PyReadonlyArray1<'py, f32>>() {
+        if a.is_c_contiguous() {
+            return Ok(a);
+        }
+    }
+    ascontiguous_f32(obj)
+        .and_then(|c| c.extract().map_err(Into::into))
+        .map_err(|_| input_error(name, "a 1-D float32 array", shape_of(obj)))
+}

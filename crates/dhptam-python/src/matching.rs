@@ -105,3 +105,30 @@ pub fn match_descriptors<'py>(
 pub fn _descriptor_address(array: &Bound<'_, PyAny>) -> PyResult<usize> {
     Ok(DescriptorArray::extract(array, "array")?.address())
 }
+
+/// Address of the first element of a feature array as the binding reads it: uint8 (N, B)
+/// descriptors through [`DescriptorArray`], float32 (N, k) keypoints/descriptors and (N,)
+/// scores through `arrays::rows_f32` / `arrays::values_f32` (which convert anything else once,
+/// so a different address means a copy was made). Used by the zero-copy tests of
+/// `dhptam.features`.
+#[pyfunction]
+pub fn _buffer_address(array: &Bound<'_, PyAny>) -> PyResult<usize> {
+    let ndim: usize = array.getattr("ndim")?.extract()?;
+    if ndim == 1 {
+        let values = crate::arrays::values_f32(array, "array")?;
+        return Ok(values.as_array().as_ptr() as usize);
+    }
+    if let Ok(binary) = array.extract::<PyReadonlyArray2<'_, u8>>() {
+        if binary.is_c_contiguous() {
+            return Ok(DescriptorArray::Binary(binary).address());
+        }
+    }
+    let cols = array
+        .getattr("shape")?
+        .extract::<Vec<usize>>()?
+        .get(1)
+        .copied()
+        .unwrap_or(1);
+    let rows = crate::arrays::rows_f32(array, cols, "array")?;
+    Ok(rows.as_array().as_ptr() as usize)
+}

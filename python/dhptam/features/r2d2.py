@@ -1,0 +1,361 @@
+"""R2D2 (Revaud et al., NeurIPS 2019): repeatable and reliable keypoints with descriptors.
+
+The network is the published one, rebuilt here from the architecture string that every official
+checkpoint carries in its ``net`` field:
+
+* ``Quad_L2Net_ConfCFS()`` (``r2d2_WASF_N16.pt``): nine convolutions at full resolution, the
+  strides of the L2-Net turned into dilations (1, 1, 1, 2, 4, 4, then three 2×2 convolutions
+  with dilations 4, 8, 16), batch norms without affine parameters, 128 output channels;
+* ``Fast_Quad_L2Net_ConfCFS()`` (``faster2d2_WASF_N16.pt``): the same after a 2× max pooling
+  following the third convolution, dilations halved, and a bilinear 2× upsampling at the end.
+
+Heads, applied to the squared features x²: reliability = softmax of a 1×1 convolution with two
+outputs (second class); repeatability = softplus(s) / (1 + softplus(s)) of a 1×1 convolution with
+one output (the published model's choice). Descriptors are the L2-normalised 128 channels.
+
+Detection, per image and scale: a pixel is a keypoint when its repeatability equals the 3×3
+maximum around it and both repeatability ≥ ``repeatability_threshold`` and reliability ≥
+``reliability_threshold`` (0.7 and 0.7 as in the authors' extractor). Its score is
+reliability × repeatability; its position is refined to sub-pixel accuracy with a parabola on
+the repeatability map. Scales: the image at ``scales`` (default 1, 0.75, 0.5 of its size),
+skipping any whose longer side would fall under ``min_size`` pixels (default 160); the authors
+use 2^(1/4) steps from 1024 px down to 256 px (up to 9 scales), which costs about twice as much
+for little gain at SLAM image sizes. Points found at several scales are merged by a non-maximum
+suppression of radius ``merge_radius_px`` in the full image (otherwise the copies of one point
+defeat the ratio test of matching). The ``max_keypoints`` best scores are kept.
+
+Both images of a stereo pair go through the network as one batch per scale. Inference folds the
+batch norms into the convolutions (exact up to float rounding) and runs under
+``torch.inference_mode``.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+import torch
+import torch.nn.functional as F  # noqa: N812 - torch's usual name
+from torch import nn
+
+from ..errors import FileError, InputError
+from .base import Features, TorchExtractor, refine_subpixel, to_features
+from .weights import safe_torch_load
+
+__all__ = ["R2D2", "R2D2Net", "architecture_from_string", "load_checkpoint"]
+
+# ImageNet statistics the published models were trained with (RGB); a grey image is fed as
+# three equal channels.
+_MEAN = (0.485, 0.456, 0.406)
+_STD = (0.229, 0.224, 0.225)
+
+
+@dataclass(frozen=True)
+class _Conv:
+    """One convolution of the trunk, in the published order."""
+
+    out_channels: int
+    kernel: int
+    dilation: int
+    batch_norm: bool
+    relu: bool
+    pool_after: int  # max-pooling factor applied after the activation (1: none)
+
+
+@dataclass(frozen=True)
+class Architecture:
+    """The trunk of a Quad_L2Net-family network."""
+
+    name: str
+    convs: tuple[_Conv, ...]
+    upsample: int  # bilinear upsampling factor at the end (1: none)
+    dim: int
+
+
+_KNOWN = {"Quad_L2Net_ConfCFS", "Fast_Quad_L2Net_ConfCFS"}
+_ALLOWED_KWARGS = {"dim", "mchan", "relu22", "downsample_factor"}
+
+
+def architecture_from_string(net: str) -> Architecture:
+    """The architecture named by a checkpoint's ``net`` string, e.g. ``"Quad_L2Net_ConfCFS()"``.
+
+    Keyword arguments are read as literals (never evaluated as code); the supported ones are
+    ``dim``, ``mchan``, ``relu22`` and ``downsample_factor`` (Fast only).
+
+    >>> arch = architecture_from_string("Fast_Quad_L2Net_ConfCFS()")
+    >>> [c.dilation for c in arch.convs], arch.upsample
+    ([1, 1, 1, 1, 2, 2, 2, 4, 8], 2)
+    """
+    match = re.fullmatch(r"\s*(\w+)\s*\((.*)\)\s*", net)
+    if match is None or match.group(1) not in _KNOWN:
+        raise InputError(
+            f"net: expected one of {sorted(_KNOWN)} with optional keyword arguments, got {net!r}", field="net"
+        )
+    name, args = match.group(1), match.group(2).strip()
+    kwargs: dict[str, Any] = {}
+    if args:
+        try:
+            call = ast.parse(f"f({args})", mode="eval").body
+            assert isinstance(call, ast.Call) and not call.args
+            kwargs = {kw.arg: ast.literal_eval(kw.value) for kw in call.keywords if kw.arg is not None}
+        except (SyntaxError, ValueError, AssertionError) as e:
+            raise InputError(f"net: cannot read the arguments of {net!r}", field="net") from e
+    unknown = set(kwargs) - _ALLOWED_KWARGS
+    if unknown:
+        raise InputError(f"net: unsupported arguments {sorted(unknown)} in {net!r}", field="net")
+    dim = int(kwargs.get("dim", 128))
+    mchan = int(kwargs.get("mchan", 4))
+    relu22 = bool(kwargs.get("relu22", False))
+    fast = name.startswith("Fast_")
+    down = int(kwargs.get("downsample_factor", 2)) if fast else 1
+
+    # (out, kernel, stride, extra dilation, bn, relu, pool): the authors' layer list. In their
+    # "dilated" mode a stride s becomes stride 1 and multiplies the dilation of every later
+    # layer by s, so the output keeps the input's resolution.
+    layers = [
+        (8 * mchan, 3, 1, 1, True, True, 1),
+        (8 * mchan, 3, 1, 1, True, True, 1),
+        (16 * mchan, 3, 1 if fast else 2, 1, True, True, down),
+        (16 * mchan, 3, 1, 1, True, True, 1),
+        (32 * mchan, 3, 2, 2, True, True, 1),
+        (32 * mchan, 3, 1, 1, True, True, 1),
+        (32 * mchan, 2, 2, 1, True, relu22, 1),
+        (32 * mchan, 2, 2, 1, True, relu22, 1),
+        (dim, 2, 2, 1, False, False, 1),
+    ]
+    convs = []
+    dilation = 1
+    for out, k, stride, extra, bn, relu, pool in layers:
+        convs.append(_Conv(out, k, dilation * extra, bn, relu, pool))
+        dilation *= stride
+    return Architecture(name, tuple(convs), down, dim)
+
+
+class R2D2Net(nn.Module):
+    """The published network; ``ops`` mirrors the authors' module list so checkpoints load as-is."""
+
+    def __init__(self, arch: Architecture) -> None:
+        super().__init__()
+        self.arch = arch
+        ops: list[nn.Module] = []
+        channels = 3
+        for conv in arch.convs:
+            pad = ((conv.kernel - 1) * conv.dilation) // 2
+            ops.append(
+                nn.Conv2d(channels, conv.out_channels, conv.kernel, padding=pad, dilation=conv.dilation)
+            )
+            if conv.batch_norm:
+                ops.append(nn.BatchNorm2d(conv.out_channels, affine=False))
+            if conv.relu:
+                ops.append(nn.ReLU(inplace=True))
+            if conv.pool_after > 1:
+                ops.append(nn.MaxPool2d(conv.pool_after))
+            channels = conv.out_channels
+        if arch.upsample > 1:
+            ops.append(nn.Upsample(scale_factor=arch.upsample, mode="bilinear", align_corners=False))
+        self.ops = nn.ModuleList(ops)
+        self.clf = nn.Conv2d(arch.dim, 2, kernel_size=1)
+        self.sal = nn.Conv2d(arch.dim, 1, kernel_size=1)
+        self._fused: nn.Sequential | None = None
+
+    def fuse(self) -> None:
+        """Folds each batch norm into the convolution before it, for inference.
+
+        With running mean μ, variance σ² and ε, BN(conv(x)) = w'·x + b' where
+        w' = w / √(σ² + ε) and b' = (b − μ) / √(σ² + ε), channel by channel.
+        """
+        fused: list[nn.Module] = []
+        for op in self.ops:
+            if isinstance(op, nn.BatchNorm2d):
+                conv = fused[-1]
+                assert isinstance(conv, nn.Conv2d) and conv.bias is not None
+                assert op.running_mean is not None and op.running_var is not None
+                inv_std = torch.rsqrt(op.running_var + op.eps)
+                folded = nn.Conv2d(
+                    conv.in_channels,
+                    conv.out_channels,
+                    conv.kernel_size,  # type: ignore[arg-type]
+                    padding=conv.padding,  # type: ignore[arg-type]
+                    dilation=conv.dilation,  # type: ignore[arg-type]
+                ).to(conv.weight.device)
+                with torch.no_grad():
+                    folded.weight.copy_(conv.weight * inv_std[:, None, None, None])
+                    assert folded.bias is not None
+                    folded.bias.copy_((conv.bias - op.running_mean) * inv_std)
+                fused[-1] = folded
+            elif isinstance(op, nn.ReLU):
+                fused.append(nn.ReLU(inplace=True))
+            else:
+                fused.append(op)
+        self._fused = nn.Sequential(*fused)
+
+    def trunk(self, x: torch.Tensor) -> torch.Tensor:
+        """Normalised RGB (B, 3, H, W) → raw features (B, D, H, W)."""
+        if self._fused is not None:
+            return self._fused(x)
+        for op in self.ops:
+            x = op(x)
+        return x
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Normalised RGB (B, 3, H, W) → descriptors (B, D, H, W), reliability, repeatability (B, 1, H, W)."""
+        return self.heads(self.trunk(x))
+
+    def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Raw features → unit-norm descriptors, reliability and repeatability maps."""
+        squared = x * x
+        reliability = F.softmax(self.clf(squared), dim=1)[:, 1:2]
+        s = F.softplus(self.sal(squared))
+        repeatability = s / (1.0 + s)
+        return F.normalize(x, p=2, dim=1), reliability, repeatability
+
+
+def _read_checkpoint(path: Path) -> dict[str, Any]:
+    checkpoint = safe_torch_load(path, "R2D2")
+    if not isinstance(checkpoint, dict) or "state_dict" not in checkpoint or "net" not in checkpoint:
+        raise FileError(
+            f"{path}: expected an R2D2 checkpoint, a dict with 'net' (architecture string) and 'state_dict'",
+            path=str(path),
+        )
+    return checkpoint
+
+
+def load_checkpoint(path: str | Path) -> R2D2Net:
+    """The network of an official R2D2 checkpoint, weights loaded, in eval mode."""
+    path = Path(path)
+    checkpoint = _read_checkpoint(path)
+    arch = architecture_from_string(str(checkpoint["net"]))
+    state = {re.sub(r"^module\.", "", k): v for k, v in checkpoint["state_dict"].items()}
+    net = R2D2Net(arch)
+    try:
+        net.load_state_dict(state, strict=True)
+    except RuntimeError as e:
+        raise FileError(f"{path}: state_dict does not fit {arch.name}: {e}", path=str(path)) from e
+    return net.eval()
+
+
+class R2D2(TorchExtractor):
+    """R2D2 keypoints with 128-D unit-norm float32 descriptors (see the module docstring)."""
+
+    name = "r2d2"
+    descriptor_width = 128
+
+    def __init__(
+        self,
+        weights: str | Path,
+        *,
+        max_keypoints: int = 1000,
+        device: str | None = "auto",
+        threads: int | None = None,
+        precision: str = "float32",
+        scales: tuple[float, ...] = (1.0, 0.75, 0.5),
+        min_size: int = 160,
+        reliability_threshold: float = 0.7,
+        repeatability_threshold: float = 0.7,
+        merge_radius_px: int = 2,
+    ) -> None:
+        super().__init__(max_keypoints, device, threads, precision)
+        if not scales or any(not (0.0 < s <= 1.0) for s in scales):
+            raise InputError(f"scales: expected factors in (0, 1], got {scales}", field="scales")
+        if merge_radius_px < 0:
+            raise InputError(f"merge_radius_px: expected ≥ 0, got {merge_radius_px}", field="merge_radius_px")
+        self.scales = tuple(sorted({float(s) for s in scales}, reverse=True))
+        self.min_size = int(min_size)
+        self.reliability_threshold = float(reliability_threshold)
+        self.repeatability_threshold = float(repeatability_threshold)
+        self.merge_radius_px = int(merge_radius_px)
+        self.weights = Path(weights)
+        self.net = load_checkpoint(self.weights)
+        self.net.fuse()
+        # NHWC lets oneDNN pick its fast convolution kernels on the CPU (4× here for the
+        # dilated layers); it is also what cuDNN prefers for these channel counts.
+        self.net.to(self.device, memory_format=torch.channels_last)
+        self.descriptor_width = self.net.arch.dim
+        self._mean = torch.tensor(_MEAN, device=self.device).view(1, 3, 1, 1)
+        self._std = torch.tensor(_STD, device=self.device).view(1, 3, 1, 1)
+
+    def scales_for(self, height: int, width: int) -> list[float]:
+        """The pyramid scales used for an image of this size (longer side ≥ ``min_size``)."""
+        chosen = [s for s in self.scales if max(height, width) * s + 1e-6 >= self.min_size]
+        return chosen or [self.scales[0]]
+
+    def _run_batch(self, images: list[npt.NDArray[np.uint8]]) -> list[Features]:
+        with torch.inference_mode():
+            grey = self._to_tensor(images)
+            rgb = ((grey.expand(-1, 3, -1, -1) - self._mean) / self._std).contiguous(
+                memory_format=torch.channels_last
+            )
+            return self._detect(rgb)
+
+    def _detect(self, rgb: torch.Tensor) -> list[Features]:
+        batch, _, height, width = rgb.shape
+        xy: list[torch.Tensor] = []
+        scores: list[torch.Tensor] = []
+        descs: list[torch.Tensor] = []
+        owner: list[torch.Tensor] = []
+        for scale in self.scales_for(height, width):
+            # The fast variant pools by 2 and upsamples back: keep sizes even so the maps
+            # have exactly the scaled image's size.
+            m = self.net.arch.upsample
+            h, w = m * round(height * scale / m), m * round(width * scale / m)
+            image = rgb
+            if (h, w) != (height, width):
+                image = F.interpolate(rgb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+            # Reduced precision (if asked) for the trunk only: the heads, whose outputs are
+            # thresholded and compared with their neighbours, run in float32.
+            with self.autocast():
+                raw = self.net.trunk(image)
+            desc, rel, rep = self.net.heads(raw.float())
+            maxima = rep == F.max_pool2d(rep, 3, stride=1, padding=1)
+            maxima &= rep >= self.repeatability_threshold
+            maxima &= rel >= self.reliability_threshold
+            b, _, y, x = maxima.nonzero(as_tuple=True)
+            offset = refine_subpixel(rep, b, y, x)
+            # Pixel centres: a pixel of the scaled image covers [x, x + 1) · width / w.
+            kx = (x.float() + offset[:, 0] + 0.5) * (width / w) - 0.5
+            ky = (y.float() + offset[:, 1] + 0.5) * (height / h) - 0.5
+            xy.append(torch.stack([kx, ky], dim=1))
+            scores.append(rel[b, 0, y, x] * rep[b, 0, y, x])
+            descs.append(desc[b, :, y, x])
+            owner.append(b)
+        all_xy, all_scores, all_desc, all_owner = (torch.cat(t) for t in (xy, scores, descs, owner))
+        keep = self._merge(all_xy, all_scores, all_owner, batch, height, width)
+        out = []
+        for i in range(batch):
+            idx = keep[all_owner[keep] == i]
+            order = torch.argsort(all_scores[idx], descending=True)[: self.max_keypoints]
+            idx = idx[order]
+            out.append(to_features(all_xy[idx], all_scores[idx], all_desc[idx]))
+        return out
+
+    def _merge(
+        self, xy: torch.Tensor, scores: torch.Tensor, owner: torch.Tensor, batch: int, height: int, width: int
+    ) -> torch.Tensor:
+        """Indices of the points that have the best score within ``merge_radius_px`` (Chebyshev).
+
+        The scores are splatted onto the full-resolution grid (maximum per pixel), max-pooled
+        over the radius, and a point survives when its score is that maximum: one pass, like
+        the detectors' own non-maximum suppression.
+        """
+        all_idx = torch.arange(xy.shape[0], device=xy.device)
+        if self.merge_radius_px == 0 or xy.shape[0] == 0:
+            return all_idx
+        col = xy[:, 0].round().long().clamp(0, width - 1)
+        row = xy[:, 1].round().long().clamp(0, height - 1)
+        flat = (owner * height + row) * width + col
+        grid = torch.zeros(batch * height * width, device=xy.device, dtype=scores.dtype)
+        grid.scatter_reduce_(0, flat, scores, reduce="amax", include_self=True)
+        r = self.merge_radius_px
+        pooled = F.max_pool2d(grid.view(batch, 1, height, width), 2 * r + 1, stride=1, padding=r).view(-1)
+        return all_idx[scores >= pooled[flat]]
+
+    def __repr__(self) -> str:
+        return (
+            f"R2D2({self.net.arch.name}, weights={str(self.weights)!r}, max_keypoints={self.max_keypoints}, "
+            f"scales={self.scales}, device={self.device})"
+        )

@@ -1,0 +1,310 @@
+"""dhptam.features: the extractor interface, zero-copy hand-over, matching, torch-free installs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+import pytest
+import torch
+from conftest import shared_path
+from skimage import data
+
+from dhptam import Config, _core, features
+from dhptam.errors import FileError, InputError
+from dhptam.features.superpoint import SuperPoint, SuperPointNet
+
+
+def _camera(width: int = 240, height: int = 180) -> npt.NDArray[np.uint8]:
+    return cv2.resize(data.camera(), (width, height), interpolation=cv2.INTER_AREA)
+
+
+def _extractors() -> dict[str, features.Extractor]:
+    torch.manual_seed(0)
+    return {
+        "orb": features.load("orb", max_keypoints=300),
+        "sift": features.load("sift", max_keypoints=300),
+        "r2d2": features.load(
+            "r2d2", shared_path("models", "r2d2", "faster2d2_WASF_N16.pt"), device="cpu", max_keypoints=300
+        ),
+        # Random weights: the memory layout of the outputs does not depend on their values.
+        "superpoint": SuperPoint(None, net=SuperPointNet(), device="cpu", max_keypoints=300),
+    }
+
+
+@pytest.fixture(scope="module")
+def extracted() -> dict[str, tuple[features.Features, features.Features]]:
+    image = _camera()
+    shifted = np.roll(image, 3, axis=1)
+    return {name: ex.extract(image, shifted) for name, ex in _extractors().items()}
+
+
+@pytest.mark.parametrize("name", ["orb", "sift", "r2d2", "superpoint"])
+def test_outputs_follow_the_contract(extracted: dict, name: str) -> None:
+    widths = {"orb": 32, "sift": 128, "r2d2": 128, "superpoint": 256}
+    for f in extracted[name]:
+        n = len(f)
+        assert 20 < n <= 300
+        assert f.keypoints.dtype == np.float32 and f.keypoints.shape == (n, 2)
+        assert f.scores.dtype == np.float32 and f.scores.shape == (n,)
+        assert f.descriptors.shape == (n, widths[name])
+        assert f.descriptors.dtype == (np.uint8 if name == "orb" else np.float32)
+        assert f.binary == (name == "orb")
+        assert (np.diff(f.scores) <= 0).all(), "best scores first"
+        assert (
+            (f.keypoints >= 0).all() and (f.keypoints[:, 0] <= 239).all() and (f.keypoints[:, 1] <= 179).all()
+        )
+        if name != "orb":
+            np.testing.assert_allclose(np.linalg.norm(f.descriptors, axis=1), 1.0, atol=1e-5)
+        # Sub-pixel: positions are not all on the integer grid.
+        assert (np.abs(f.keypoints - np.round(f.keypoints)) > 1e-3).mean() > 0.2
+
+
+@pytest.mark.parametrize("name", ["orb", "sift", "r2d2", "superpoint"])
+def test_rust_reads_the_extractor_outputs_in_place(extracted: dict, name: str) -> None:
+    left, _ = extracted[name]
+    for array in (left.keypoints, left.scores, left.descriptors):
+        assert array.flags.c_contiguous
+        assert _core._buffer_address(array) == array.__array_interface__["data"][0]
+    assert _core._descriptor_address(left.descriptors) == left.descriptors.__array_interface__["data"][0]
+    # The check can fail: an array of another dtype is converted, so its address differs.
+    as_f64 = left.keypoints.astype(np.float64)
+    assert _core._buffer_address(as_f64) != as_f64.__array_interface__["data"][0]
+    strided = np.asfortranarray(np.zeros((8, 2), np.float32))
+    assert _core._buffer_address(strided) != strided.__array_interface__["data"][0]
+
+
+def _reference_matches(
+    q: npt.NDArray, t: npt.NDArray, max_distance: float, ratio: float, mutual: bool
+) -> list[tuple[int, int]]:
+    if q.dtype == np.uint8:
+        d = np.unpackbits(q[:, None, :] ^ t[None, :, :], axis=2).sum(axis=2).astype(np.float64)
+    else:
+        d = np.linalg.norm(q[:, None, :].astype(np.float64) - t[None, :, :], axis=2)
+    out = []
+    for i in range(len(q)):
+        order = np.argsort(d[i], kind="stable")
+        j = int(order[0])
+        second = d[i, order[1]] if len(order) > 1 else np.inf
+        if d[i, j] > max_distance or (ratio < 1.0 and not d[i, j] < ratio * second):
+            continue
+        if mutual and int(np.argmin(d[:, j])) != i:
+            continue
+        out.append((i, j))
+    return out
+
+
+@pytest.mark.parametrize("name", ["orb", "sift", "r2d2", "superpoint"])
+@pytest.mark.parametrize(("ratio", "mutual"), [(0.8, True), (1.0, False), (0.95, True)])
+def test_match_equals_a_brute_force_reference(extracted: dict, name: str, ratio: float, mutual: bool) -> None:
+    left, right = extracted[name]
+    limit = 64.0 if name == "orb" else 0.9
+    pairs, distances = features.match(left, right, ratio=ratio, mutual=mutual)
+    expected = _reference_matches(left.descriptors, right.descriptors, limit, ratio, mutual)
+    assert [tuple(p) for p in pairs.tolist()] == expected
+    assert pairs.dtype == np.int64 and distances.dtype == np.float32
+    if name != "orb":
+        np.testing.assert_allclose(
+            distances,
+            np.linalg.norm(left.descriptors[pairs[:, 0]] - right.descriptors[pairs[:, 1]], axis=1),
+            atol=1e-5,
+        )
+    # max_distance cuts.
+    tight, tight_d = features.match(
+        left, right, max_distance=float(np.median(distances)), ratio=ratio, mutual=mutual
+    )
+    assert len(tight) < len(pairs) and (tight_d <= np.median(distances)).all()
+
+
+def test_matches_follow_the_shift_between_the_images(extracted: dict) -> None:
+    # The right image is the left one rolled 3 px to the right: correct matches move by +3 px.
+    # Measured fractions within 1 px: orb 0.86, sift 0.99, r2d2 (faster2d2) 0.87.
+    for name in ("orb", "sift", "r2d2"):
+        left, right = extracted[name]
+        pairs, _ = features.match(left, right)
+        shift = right.keypoints[pairs[:, 1]] - left.keypoints[pairs[:, 0]]
+        good = np.linalg.norm(shift - [3.0, 0.0], axis=1) < 1.0
+        assert len(pairs) > 100 and good.mean() > 0.75, (name, good.mean())
+
+
+def test_empty_images_give_empty_features_that_match() -> None:
+    flat = np.full((64, 80), 128, np.uint8)
+    for name in ("orb", "sift"):
+        left, right = features.load(name).extract(flat, flat)
+        assert len(left) == 0 and left.descriptors.shape[1] in (32, 128)
+        pairs, distances = features.match(left, right)
+        assert pairs.shape == (0, 2) and distances.shape == (0,)
+
+
+def test_bad_images_and_arguments_are_named() -> None:
+    orb = features.load("orb")
+    image = _camera()
+    with pytest.raises(InputError, match=r"image_left.*uint8"):
+        orb.extract(image.astype(np.float32), image)
+    with pytest.raises(InputError, match=r"image_right.*size"):
+        orb.extract(image, image[:100])
+    with pytest.raises(InputError, match=r"image_left.*grayscale"):
+        orb.extract(np.dstack([image] * 3), image)
+    with pytest.raises(InputError, match=r"name.*superpoint, r2d2, orb, sift"):
+        features.load("surf")
+    with pytest.raises(InputError, match="max_keypoints"):
+        features.load("sift", max_keypoints=0)
+    with pytest.raises(InputError, match="weights: orb needs no weights"):
+        features.load("orb", weights="x.pt")
+    with pytest.raises(FileError, match=r"does-not-exist.pt"):
+        features.load("r2d2", "/nowhere/does-not-exist.pt", device="cpu")
+    with pytest.raises(InputError, match="device"):
+        features.load("r2d2", shared_path("models", "r2d2", "faster2d2_WASF_N16.pt"), device="tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(InputError, match="CUDA is not available"):
+            features.load("r2d2", shared_path("models", "r2d2", "faster2d2_WASF_N16.pt"), device="cuda")
+    with pytest.raises(InputError, match="keypoints"):
+        features.Features(np.zeros((3, 2)), np.zeros(3, np.float32), np.zeros((3, 8), np.float32))
+    with pytest.raises(InputError, match="descriptors"):
+        features.Features(np.zeros((3, 2), np.float32), np.zeros(3, np.float32), np.zeros((2, 8), np.float32))
+
+
+def test_device_auto_and_threads() -> None:
+    path = shared_path("models", "r2d2", "faster2d2_WASF_N16.pt")
+    before = torch.get_num_threads()
+    try:
+        extractor = features.load("r2d2", path, threads=1)
+        assert extractor.device.type == ("cuda" if torch.cuda.is_available() else "cpu")  # type: ignore[attr-defined]
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
+def test_config_section_builds_the_extractor(monkeypatch: pytest.MonkeyPatch) -> None:
+    extractor = features.from_config(Config.from_toml('[features]\nextractor = "orb"\nmax_keypoints = 77'))
+    assert extractor.name == "orb" and extractor.max_keypoints == 77
+    monkeypatch.setenv("DHPTAM_WEIGHTS_DIR", str(shared_path("models", "r2d2")))
+    extractor = features.from_config(
+        Config.from_toml('[features]\nweights = "faster2d2_WASF_N16"\ndevice = "cpu"\nmax_keypoints = 10')
+    )
+    assert extractor.name == "r2d2" and "Fast_Quad_L2Net" in repr(extractor)
+    assert len(extractor.extract_one(_camera())) == 10
+
+
+def _run_python(code: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=120
+    )
+
+
+def test_importing_dhptam_features_does_not_import_torch() -> None:
+    result = _run_python(
+        """
+        import sys
+        import dhptam, dhptam.features
+        dhptam.features.load("orb")
+        print("torch" in sys.modules)
+        """
+    )
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "False"
+
+
+def test_without_torch_orb_and_sift_run_and_learned_extractors_say_how_to_install() -> None:
+    result = _run_python(
+        """
+        import sys
+
+        class NoTorch:
+            def find_spec(self, name, path=None, target=None):
+                if name == "torch" or name.startswith("torch."):
+                    raise ImportError("No module named 'torch' (blocked by the test)")
+                return None
+
+        sys.meta_path.insert(0, NoTorch())
+        import numpy as np
+        from dhptam import features
+        from dhptam.errors import DhptamError
+
+        rng = np.random.default_rng(1)
+        image = (rng.random((96, 128)) * 255).astype(np.uint8)
+        for name in ("orb", "sift"):
+            left, right = features.load(name).extract(image, image)
+            assert len(features.match(left, right)[0]) > 10, name
+        for name in ("r2d2", "superpoint"):
+            try:
+                features.load(name)
+            except DhptamError as e:
+                assert isinstance(e, ImportError)
+                print(name, e)
+        """
+    )
+    assert result.returncode == 0, result.stderr
+    lines = result.stdout.strip().splitlines()
+    assert len(lines) == 2
+    assert all("pip install dhptam[features]" in line for line in lines)
+
+
+def test_r2d2_architectures_match_the_official_checkpoints() -> None:
+    from dhptam.features.r2d2 import architecture_from_string, load_checkpoint
+
+    quad = architecture_from_string("Quad_L2Net_ConfCFS()")
+    assert [c.dilation for c in quad.convs] == [1, 1, 1, 2, 4, 4, 4, 8, 16] and quad.upsample == 1
+    fast = architecture_from_string("Fast_Quad_L2Net_ConfCFS()")
+    assert [c.pool_after for c in fast.convs][2] == 2 and fast.upsample == 2
+    for name in ("r2d2_WASF_N16", "faster2d2_WASF_N16"):
+        net = load_checkpoint(shared_path("models", "r2d2", f"{name}.pt"))
+        x = torch.randn(2, 3, 48, 64)
+        with torch.inference_mode():
+            plain = net(x)
+            net.fuse()
+            folded = net(x)
+        for a, b in zip(plain, folded, strict=True):
+            torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+        descriptors, reliability, repeatability = folded
+        assert descriptors.shape == (2, 128, 48, 64) and reliability.shape == (2, 1, 48, 64)
+        assert float(repeatability.min()) >= 0 and float(repeatability.max()) <= 1
+    with pytest.raises(InputError, match="net"):
+        architecture_from_string("__import__('os').system('true')")
+    with pytest.raises(InputError, match="unsupported arguments"):
+        architecture_from_string("Quad_L2Net_ConfCFS(bn_affine=True)")
+
+
+def test_r2d2_pyramid_scales_and_thresholds() -> None:
+    path = shared_path("models", "r2d2", "r2d2_WASF_N16.pt")
+    extractor = features.load("r2d2", path, device="cpu", max_keypoints=5000)
+    assert extractor.scales_for(480, 640) == [1.0, 0.75, 0.5]  # type: ignore[attr-defined]
+    assert extractor.scales_for(180, 240) == [1.0, 0.75]  # type: ignore[attr-defined]
+    image = _camera()
+    many = extractor.extract_one(image)
+    assert many.scores.min() >= 0.7 * 0.7 - 1e-6  # reliability × repeatability, both ≥ 0.7
+    strict = features.load(
+        "r2d2", path, device="cpu", max_keypoints=5000, reliability_threshold=0.9, repeatability_threshold=0.9
+    ).extract_one(image)
+    assert 0 < len(strict) < len(many) and strict.scores.min() >= 0.81 - 1e-6
+    # Merging the scales leaves no two keypoints within 2 px (Chebyshev) of each other.
+    d = np.abs(many.keypoints[:, None, :] - many.keypoints[None, :, :]).max(axis=2)
+    np.fill_diagonal(d, np.inf)
+    assert d.min() > 1.0
+    unmerged = features.load("r2d2", path, device="cpu", max_keypoints=5000, merge_radius_px=0).extract_one(
+        image
+    )
+    assert len(unmerged) > len(many)
+
+
+def test_bfloat16_trunk_agrees_with_float32() -> None:
+    image = _camera()
+    path = shared_path("models", "r2d2", "faster2d2_WASF_N16.pt")
+    full = features.load("r2d2", path, device="cpu", max_keypoints=200).extract_one(image)
+    half = features.load("r2d2", path, device="cpu", max_keypoints=200, precision="bfloat16").extract_one(
+        image
+    )
+    assert half.descriptors.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(half.descriptors, axis=1), 1.0, atol=1e-5)
+    # Most keypoints are found again within 1 px, with nearly the same descriptor.
+    d = np.linalg.norm(full.keypoints[:, None] - half.keypoints[None], axis=2)
+    near = d.min(axis=1) <= 1.0
+    assert near.mean() > 0.8
+    same = np.einsum("ij,ij->i", full.descriptors[near], half.descriptors[d.argmin(axis=1)[near]])
+    assert np.median(same) > 0.98
+    with pytest.raises(InputError, match="precision"):
+        features.load("r2d2", path, device="cpu", precision="int8")
