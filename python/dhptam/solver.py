@@ -52,7 +52,7 @@ class SolveReport:
         Worker threads used.
     termination:
         ``function_tolerance``, ``gradient_tolerance``, ``parameter_tolerance``,
-        ``max_iterations`` or ``no_decrease``.
+        ``max_iterations``, ``no_decrease`` or ``interrupted``.
     history:
         (cost, seconds since the start) after each taken step, the initial cost first.
     extra:

@@ -7,6 +7,7 @@ pub mod lm;
 pub mod pose;
 pub mod pose_graph;
 pub mod robust;
+pub mod stereo_ba;
 
 pub use ba::{solve_bal, BundleAdjustment, BundleOptions};
 pub use linear::LinearSolver;
@@ -17,3 +18,4 @@ pub use pose_graph::{
     PoseGraphSolver,
 };
 pub use robust::{Corrector, Loss};
+pub use stereo_ba::{solve_stereo_ba, BaKeyframe, BaObservation, StereoBaOptions, StereoBaResult};
