@@ -20,6 +20,7 @@ pub mod geometry;
 pub mod io;
 pub mod matching;
 pub mod sim;
+pub mod slam;
 pub mod solver;
 
 pub use error::{Error, Result};
