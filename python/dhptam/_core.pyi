@@ -11,6 +11,7 @@ __all__ = [
     "SO3",
     "Camera",
     "Config",
+    "PySystem",
     "RectifiedStereo",
     "Simulator",
     "StereoRig",
@@ -329,3 +330,39 @@ def _bundle_adjust(
     fixed_cameras: list[int] = ...,
     max_iterations: int = 50,
 ) -> tuple[_FloatArray, _FloatArray, dict[str, Any]]: ...
+
+# --- SLAM back-end (issue 7) ---
+@final
+class PySystem:
+    """The SLAM back-end (wrapped by ``dhptam.System``)."""
+
+    def __new__(
+        cls,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        baseline_m: float,
+        width: int,
+        height: int,
+        config: Config | None = None,
+        threaded: bool = True,
+    ) -> PySystem: ...
+    def track(
+        self,
+        t_ns: int,
+        left_keypoints: npt.NDArray[np.float32],
+        left_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+        right_keypoints: npt.NDArray[np.float32],
+        right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+    ) -> tuple[_FloatArray, str, int, bool]: ...
+    def trajectory(self) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
+    def keyframe_trajectory(self) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
+    def map_points(self) -> _FloatArray: ...
+    def loop_closures(self) -> list[tuple[int, int]]: ...
+    def timing(self) -> dict[str, dict[str, float]]: ...
+    def save_map(self, path: str | os.PathLike[str]) -> None: ...
+    def load_map(self, path: str | os.PathLike[str]) -> None: ...
+    def shutdown(self) -> None: ...
+    @property
+    def threaded(self) -> bool: ...
