@@ -232,6 +232,16 @@ _I64 = npt.NDArray[np.int64]
 _I8 = npt.NDArray[np.int8]
 _F32 = npt.NDArray[np.float32]
 
+# Descriptor matching (float32 rows by L2, uint8 rows by Hamming).
+def match_descriptors(
+    query: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+    train: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+    max_distance: float,
+    ratio: float = 0.9,
+    mutual: bool = True,
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]: ...
+def _descriptor_address(array: npt.NDArray[np.float32] | npt.NDArray[np.uint8]) -> int: ...
+
 def _e3ct(
     x: _U16,
     y: _U16,

@@ -8,6 +8,7 @@
 //! - [`sim`]: the stereo events+frames simulator (ray casting, ESIM events, frame sensor).
 //! - [`events`]: event windows, the E3CT and baseline event representations.
 //! - [`fusion`]: event rectification, event→frame warp, online β fusion.
+//! - [`matching`]: float/binary descriptors, distances, brute-force and guided matching.
 //! - [`config`]: typed, documented, TOML-backed configuration of every stage.
 //! - [`error`]: the error type shared by the whole core.
 
@@ -17,6 +18,7 @@ pub mod events;
 pub mod fusion;
 pub mod geometry;
 pub mod io;
+pub mod matching;
 pub mod sim;
 pub mod solver;
 

@@ -14,6 +14,7 @@ mod errors;
 mod events;
 mod fusion;
 mod geometry;
+mod matching;
 mod sim;
 mod solver;
 mod stereo;
@@ -74,6 +75,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sim::sim_builtin_trajectory, m)?)?;
     m.add_function(wrap_pyfunction!(sim::sim_file_trajectory, m)?)?;
     m.add_function(wrap_pyfunction!(sim::sim_profile_segments, m)?)?;
+    m.add_function(wrap_pyfunction!(matching::match_descriptors, m)?)?;
+    m.add_function(wrap_pyfunction!(matching::_descriptor_address, m)?)?;
     m.add_function(wrap_pyfunction!(events::_e3ct, m)?)?;
     m.add_function(wrap_pyfunction!(events::_count_image, m)?)?;
     m.add_function(wrap_pyfunction!(events::_time_surface, m)?)?;
