@@ -35,6 +35,7 @@ __all__ = [
     "sim_builtin_trajectory",
     "sim_file_trajectory",
     "sim_profile_segments",
+    "solve_pnp_ransac",
     "thread_count",
 ]
 __version__: str
@@ -330,6 +331,20 @@ def _bundle_adjust(
     fixed_cameras: list[int] = ...,
     max_iterations: int = 50,
 ) -> tuple[_FloatArray, _FloatArray, dict[str, Any]]: ...
+def solve_pnp_ransac(
+    points_world: _ArrayLike,
+    pixels: _ArrayLike,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    *,
+    threshold_px: float = 2.0,
+    confidence: float = 0.999,
+    max_iterations: int = 1000,
+    min_inliers: int = 10,
+    seed: int = 0,
+) -> tuple[_FloatArray, npt.NDArray[np.bool_], int] | None: ...
 
 # --- SLAM back-end (issue 7) ---
 @final

@@ -4,6 +4,7 @@
 pub mod ba;
 pub mod linear;
 pub mod lm;
+pub mod pnp;
 pub mod pose;
 pub mod pose_graph;
 pub mod robust;
@@ -12,6 +13,7 @@ pub mod stereo_ba;
 pub use ba::{solve_bal, BundleAdjustment, BundleOptions};
 pub use linear::LinearSolver;
 pub use lm::{solve, LeastSquares, LmOptions, LmReport, Termination};
+pub use pnp::{solve_pnp_ransac, PnpRansacOptions, PnpResult};
 pub use pose::{refine_pose, PoseObservation, PoseOptions, PoseResult, StereoIntrinsics};
 pub use pose_graph::{
     solve_pose_graph2, solve_pose_graph3, GraphPose, PoseGraphOptions, PoseGraphSe2, PoseGraphSe3,
