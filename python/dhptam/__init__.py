@@ -27,6 +27,7 @@ from .errors import (
     ParseError,
 )
 from .geometry import SE3, SO3, Camera, RectifiedStereo, StereoRig, Triangulation, triangulate
+from .system import StereoCalibration, System, TrackResult
 
 __version__: str = _core.__version__
 
@@ -42,7 +43,10 @@ __all__ = [
     "NumericalError",
     "ParseError",
     "RectifiedStereo",
+    "StereoCalibration",
     "StereoRig",
+    "System",
+    "TrackResult",
     "Triangulation",
     "__version__",
     "triangulate",

@@ -11,6 +11,7 @@ __all__ = [
     "SO3",
     "Camera",
     "Config",
+    "PySystem",
     "RectifiedStereo",
     "Simulator",
     "StereoRig",
@@ -34,6 +35,7 @@ __all__ = [
     "sim_builtin_trajectory",
     "sim_file_trajectory",
     "sim_profile_segments",
+    "solve_pnp_ransac",
     "thread_count",
 ]
 __version__: str
@@ -347,3 +349,53 @@ class EventRectifier:
         self, x: _U16, y: _U16, t_ns: _I64, p: _I8, t_start_ns: int, t_end_ns: int
     ) -> tuple[_U16, _U16, _I64, _I8]: ...
     def lookup(self, pixels: npt.NDArray[np.int64]) -> _FloatArray: ...
+def solve_pnp_ransac(
+    points_world: _ArrayLike,
+    pixels: _ArrayLike,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    *,
+    threshold_px: float = 2.0,
+    confidence: float = 0.999,
+    max_iterations: int = 1000,
+    min_inliers: int = 10,
+    seed: int = 0,
+) -> tuple[_FloatArray, npt.NDArray[np.bool_], int] | None: ...
+
+# --- SLAM back-end (issue 7) ---
+@final
+class PySystem:
+    """The SLAM back-end (wrapped by ``dhptam.System``)."""
+
+    def __new__(
+        cls,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        baseline_m: float,
+        width: int,
+        height: int,
+        config: Config | None = None,
+        threaded: bool = True,
+    ) -> PySystem: ...
+    def track(
+        self,
+        t_ns: int,
+        left_keypoints: npt.NDArray[np.float32],
+        left_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+        right_keypoints: npt.NDArray[np.float32],
+        right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+    ) -> tuple[_FloatArray, str, int, bool]: ...
+    def trajectory(self) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
+    def keyframe_trajectory(self) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
+    def map_points(self) -> _FloatArray: ...
+    def loop_closures(self) -> list[tuple[int, int]]: ...
+    def timing(self) -> dict[str, dict[str, float]]: ...
+    def save_map(self, path: str | os.PathLike[str]) -> None: ...
+    def load_map(self, path: str | os.PathLike[str]) -> None: ...
+    def shutdown(self) -> None: ...
+    @property
+    def threaded(self) -> bool: ...

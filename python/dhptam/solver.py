@@ -1,4 +1,5 @@
-"""Nonlinear least squares: bundle adjustment (BAL problems) and pose graphs (g2o files).
+"""Nonlinear least squares: bundle adjustment (BAL problems), pose graphs (g2o files) and
+RANSAC PnP.
 
 The solves run in Rust with the GIL released, on a thread pool local to each call. Costs are
 ½Σρ(‖r‖²) — Ceres' definition for bundle adjustment, ½Σ‖r‖²_Σ (GTSAM's) for pose graphs.
@@ -52,7 +53,7 @@ class SolveReport:
         Worker threads used.
     termination:
         ``function_tolerance``, ``gradient_tolerance``, ``parameter_tolerance``,
-        ``max_iterations`` or ``no_decrease``.
+        ``max_iterations``, ``no_decrease`` or ``interrupted``.
     history:
         (cost, seconds since the start) after each taken step, the initial cost first.
     extra:
@@ -184,3 +185,74 @@ def bundle_adjust(
         max_iterations=max_iterations,
     )
     return cams, pts, SolveReport._from_dict(d)
+
+
+@dataclass(frozen=True)
+class PnpResult:
+    """A camera pose found by :func:`solve_pnp_ransac`.
+
+    Attributes
+    ----------
+    cam_from_world:
+        (4, 4) float64 transform mapping world points into the camera frame.
+    inliers:
+        (N,) bool: in front of the camera with a reprojection error ≤ ``threshold_px``.
+    inlier_count:
+        Number of inliers.
+    iterations:
+        RANSAC iterations run.
+    """
+
+    cam_from_world: NDArray[np.float64]
+    inliers: NDArray[np.bool_]
+    inlier_count: int
+    iterations: int
+
+
+def solve_pnp_ransac(
+    points_world: ArrayLike,
+    pixels: ArrayLike,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    *,
+    threshold_px: float = 2.0,
+    confidence: float = 0.999,
+    max_iterations: int = 1000,
+    min_inliers: int = 10,
+    seed: int = 0,
+) -> PnpResult | None:
+    """RANSAC PnP of an undistorted pinhole camera: P3P samples drawn by a seeded generator,
+    an adaptive iteration count for ``confidence``, then Levenberg–Marquardt refinement on the
+    inliers and re-scoring.
+
+    ``points_world`` (N, 3) in metres, ``pixels`` (N, 2) as (column, row). Returns ``None``
+    when no pose has ``min_inliers`` inliers; raises :class:`dhptam.errors.InputError`
+    for mismatched lengths, fewer than 4 correspondences or non-finite values.
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> cam = rng.uniform([-1, -1, 2], [1, 1, 6], (20, 3))   # identity pose: world = camera
+    >>> px = cam[:, :2] / cam[:, 2:] * 400.0 + 320.0
+    >>> r = solve_pnp_ransac(cam, px, 400.0, 400.0, 320.0, 320.0)
+    >>> r.inlier_count, bool(np.allclose(r.cam_from_world, np.eye(4), atol=1e-9))
+    (20, True)
+    """
+    out = _core.solve_pnp_ransac(
+        points_world,
+        pixels,
+        fx,
+        fy,
+        cx,
+        cy,
+        threshold_px=threshold_px,
+        confidence=confidence,
+        max_iterations=max_iterations,
+        min_inliers=min_inliers,
+        seed=seed,
+    )
+    if out is None:
+        return None
+    pose, inliers, iterations = out
+    return PnpResult(pose, inliers, int(inliers.sum()), iterations)

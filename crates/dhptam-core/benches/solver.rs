@@ -1,7 +1,9 @@
 //! Solver speed on the problem sizes the SLAM threads see:
 //! - motion-only refinement: 1 000 stereo observations, 10 LM iterations, Huber loss;
-//! - local bundle adjustment: 10 keyframes, 2 000 points, 10 000 observations, Huber loss,
-//!   two keyframes fixed, one thread, 10 iterations from a perturbed start.
+//! - local stereo bundle adjustment as the mapping thread runs it (SE(3) keyframes, rectified
+//!   stereo and mono observations): 10 keyframes, 2 000 points, 10 000 observations, Huber
+//!   loss, two keyframes fixed, one thread, ≤ 10 iterations from a perturbed start;
+//! - the same sizes on the BAL camera model (9 unknowns per keyframe), kept for context.
 //!
 //! `cargo bench -p dhptam-core --bench solver`
 
@@ -10,8 +12,8 @@ use dhptam_core::geometry::Se3;
 use dhptam_core::io::{BalObservation, BalProblem};
 use dhptam_core::solver::ba::bal_project;
 use dhptam_core::solver::{
-    refine_pose, solve_bal, BundleOptions, LmOptions, Loss, PoseObservation, PoseOptions,
-    StereoIntrinsics,
+    refine_pose, solve_bal, solve_stereo_ba, BaKeyframe, BaObservation, BundleOptions, LmOptions,
+    Loss, PoseObservation, PoseOptions, StereoBaOptions, StereoIntrinsics,
 };
 use nalgebra::{Vector2, Vector3, Vector6};
 use rand::{Rng, SeedableRng};
@@ -135,5 +137,128 @@ fn local_ba(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, motion_only, local_ba);
+/// Ten keyframes 0.2 m apart along x (small yaw each) looking +z at 2 000 points 4–8 m ahead;
+/// each point seen by five keyframes, three in four observations stereo, σ ≈ 0.3 px noise.
+fn stereo_window() -> (
+    StereoIntrinsics,
+    Vec<BaKeyframe>,
+    Vec<Vector3<f64>>,
+    Vec<BaObservation>,
+) {
+    let k = StereoIntrinsics {
+        fx: 450.0,
+        fy: 450.0,
+        cx: 320.0,
+        cy: 240.0,
+        baseline: 0.12,
+    };
+    let mut r = ChaCha8Rng::seed_from_u64(3);
+    let truth: Vec<Se3> = (0..10)
+        .map(|i| {
+            Se3::exp(&Vector6::new(
+                0.2 * i as f64,
+                0.0,
+                0.0,
+                0.0,
+                0.02 * i as f64,
+                0.0,
+            ))
+            .inverse()
+        })
+        .collect();
+    let points: Vec<Vector3<f64>> = (0..2000)
+        .map(|_| {
+            Vector3::new(
+                r.random_range(-1.5..3.5),
+                r.random_range(-2.0..2.0),
+                r.random_range(4.0..8.0),
+            )
+        })
+        .collect();
+    let mut observations = Vec::new();
+    for (j, x) in points.iter().enumerate() {
+        for s in 0..5 {
+            let i = (j + 2 * s) % 10;
+            let p = truth[i].transform_point(x);
+            let mut e = || r.random_range(-0.5..0.5);
+            observations.push(BaObservation {
+                keyframe: i,
+                point: j,
+                pixel: Vector2::new(k.fx * p.x / p.z + k.cx + e(), k.fy * p.y / p.z + k.cy + e()),
+                u_right: (s != 4).then(|| k.fx * (p.x - k.baseline) / p.z + k.cx + e()),
+            });
+        }
+    }
+    let keyframes = truth
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let d = Vector6::from_fn(|_, _| r.random_range(-0.005..0.005));
+            BaKeyframe {
+                cam_from_world: if i < 2 { *t } else { Se3::exp(&d) * *t },
+                fixed: i < 2,
+            }
+        })
+        .collect();
+    let points = points
+        .iter()
+        .map(|p| p + Vector3::from_fn(|_, _| r.random_range(-0.02..0.02)))
+        .collect();
+    (k, keyframes, points, observations)
+}
+
+fn stereo_local_ba(c: &mut Criterion) {
+    let (k, keyframes, points, observations) = stereo_window();
+    let options = StereoBaOptions {
+        loss: Loss::Huber(2.0),
+        threads: 1,
+        ..Default::default()
+    };
+    {
+        let (mut kf, mut pts) = (keyframes.clone(), points.clone());
+        if let Ok(r) = solve_stereo_ba(&k, &mut kf, &mut pts, &observations, &options, None) {
+            let r = r.report;
+            eprintln!(
+                "stereo local BA: {} iterations, cost {:.6e} -> {:.6e}, {}",
+                r.iterations,
+                r.initial_cost,
+                r.final_cost,
+                r.termination.name()
+            );
+        }
+    }
+    let mut group = c.benchmark_group("stereo_local_ba");
+    group.sample_size(30);
+    group.bench_function(
+        "10_keyframes_2000_points_10000_obs_huber_2_fixed_1_thread",
+        |b| {
+            b.iter(|| {
+                let (mut kf, mut pts) = (keyframes.clone(), points.clone());
+                solve_stereo_ba(&k, &mut kf, &mut pts, &observations, &options, None)
+                    .map(|r| r.report.iterations)
+            })
+        },
+    );
+    // The worst case of the mapping thread's budget: exactly 10 iterations, no early stop.
+    let exact = StereoBaOptions {
+        lm: LmOptions {
+            max_iterations: 10,
+            function_tolerance: 0.0,
+            gradient_tolerance: 0.0,
+            parameter_tolerance: 0.0,
+            ..Default::default()
+        },
+        ..options
+    };
+    group.bench_function("same_exactly_10_iterations", |b| {
+        b.iter(|| {
+            let (mut kf, mut pts) = (keyframes.clone(), points.clone());
+            solve_stereo_ba(&k, &mut kf, &mut pts, &observations, &exact, None)
+                .map(|r| r.report.iterations)
+        })
+    });
+    group.finish();
+}
+
+criterion_group!(benches, motion_only, stereo_local_ba, local_ba);
 criterion_main!(benches);

@@ -242,6 +242,183 @@ config_section! {
     }
 }
 
+// --- SLAM back-end (issue 7) ---
+config_section! {
+    /// Tracking: stereo matching, projection-guided matching, pose refinement, keyframes.
+    TrackingConfig {
+        /// Rectified stereo matches may differ in row by at most this, pixels.
+        stereo_row_px: f64 = 2.0,
+        /// Descriptor ratio test: best distance < ratio × second best (1 turns it off).
+        ratio: f64 = 0.9,
+        /// Largest descriptor distance of a match; 0 uses the descriptor kind's default
+        /// (L2 in [0, 2] for unit float descriptors, Hamming bits for binary ones).
+        max_descriptor_distance: f64 = 0.0,
+        /// Side of the square cells of the keypoint grid used for candidate lookup, pixels.
+        cell_px: f64 = 15.0,
+        /// Search radius around a map point's projection, pixels (the paper's 15 px).
+        radius_px: f64 = 15.0,
+        /// Search radius of the second pass when the first found too few matches, pixels.
+        wide_radius_px: f64 = 25.0,
+        /// Fewer matches than this after the first pass triggers the wide second pass.
+        min_matches: u32 = 50,
+        /// Fewer inliers than this after refinement: the frame is lost.
+        min_tracked: u32 = 15,
+        /// Map points seen under a larger angle from their mean viewing direction are not
+        /// searched, degrees.
+        max_view_angle_deg: f64 = 60.0,
+        /// Covisible keyframes (besides the reference) whose points form the local map.
+        local_keyframes: u32 = 10,
+        /// New keyframe when the tracked points fall under this fraction of the reference
+        /// keyframe's.
+        keyframe_ratio: f64 = 0.9,
+        /// New keyframe also whenever fewer points than this are tracked.
+        keyframe_min_tracked: u32 = 50,
+        /// The first keyframe needs at least this many triangulated stereo matches.
+        init_min_points: u32 = 30,
+        /// Levenberg–Marquardt iterations of each motion-only refinement.
+        refine_iterations: u32 = 10,
+        /// Huber scale and outlier bound of the refinement, pixels (√7.815: the 95 % χ²
+        /// bound of a 3-dof stereo residual at σ = 1 px).
+        huber_px: f64 = 2.795,
+    }
+}
+
+config_section! {
+    /// Local mapping: local bundle adjustment and map point culling.
+    MappingConfig {
+        /// Keyframes optimised by each local bundle adjustment (the new one and its most
+        /// covisible); other keyframes observing their points are held fixed.
+        window: u32 = 10,
+        /// At most this many fixed keyframes take part.
+        max_fixed: u32 = 10,
+        /// Levenberg–Marquardt iterations of the local bundle adjustment.
+        ba_iterations: u32 = 30,
+        /// A point observed by fewer keyframes than `min_observers` once this many keyframes
+        /// have been added after its creation is removed.
+        cull_after_keyframes: u32 = 3,
+        /// See `cull_after_keyframes`.
+        min_observers: u32 = 2,
+        /// Keyframes the tracker may queue for the mapping thread before it waits.
+        queue: u32 = 8,
+    }
+}
+
+config_section! {
+    /// Loop closing and relocalisation (place recognition + RANSAC PnP).
+    LoopClosingConfig {
+        /// Detect and close loops.
+        enabled: bool = true,
+        /// Smallest cosine similarity of two keyframes' embeddings to be a loop candidate.
+        min_score: f64 = 0.8,
+        /// Candidates verified per keyframe (best scores first).
+        candidates: u32 = 3,
+        /// The most recent keyframes are never loop candidates.
+        skip_recent: u32 = 20,
+        /// PnP inliers needed to accept a loop or a relocalisation.
+        min_inliers: u32 = 30,
+        /// RANSAC inlier threshold, pixels.
+        ransac_threshold_px: f64 = 3.0,
+        /// RANSAC iteration cap.
+        ransac_iterations: u32 = 300,
+        /// RANSAC seed (fixed: the synchronous mode gives the same results every run).
+        seed: u64 = 7,
+    }
+}
+// --- end SLAM back-end ---
+
+// --- SLAM back-end (issue 7) ---
+impl TrackingConfig {
+    fn check(&self) -> Result<()> {
+        for (key, v) in [
+            ("tracking.stereo_row_px", self.stereo_row_px),
+            ("tracking.cell_px", self.cell_px),
+            ("tracking.radius_px", self.radius_px),
+            ("tracking.wide_radius_px", self.wide_radius_px),
+            ("tracking.huber_px", self.huber_px),
+        ] {
+            check(key, v.is_finite() && v > 0.0, "a positive number", v)?;
+        }
+        check(
+            "tracking.ratio",
+            self.ratio > 0.0 && self.ratio <= 1.0,
+            "a value in (0, 1]",
+            self.ratio,
+        )?;
+        check(
+            "tracking.keyframe_ratio",
+            (0.0..=1.0).contains(&self.keyframe_ratio),
+            "a value in [0, 1]",
+            self.keyframe_ratio,
+        )?;
+        check(
+            "tracking.max_descriptor_distance",
+            self.max_descriptor_distance >= 0.0,
+            "a non-negative number",
+            self.max_descriptor_distance,
+        )?;
+        check(
+            "tracking.max_view_angle_deg",
+            self.max_view_angle_deg > 0.0 && self.max_view_angle_deg <= 180.0,
+            "a value in (0, 180]",
+            self.max_view_angle_deg,
+        )?;
+        check(
+            "tracking.min_tracked",
+            self.min_tracked >= 6,
+            "at least 6",
+            self.min_tracked,
+        )?;
+        check(
+            "tracking.refine_iterations",
+            self.refine_iterations >= 1,
+            "at least 1",
+            self.refine_iterations,
+        )
+    }
+}
+
+impl MappingConfig {
+    fn check(&self) -> Result<()> {
+        check(
+            "mapping.window",
+            self.window >= 1,
+            "at least 1",
+            self.window,
+        )?;
+        check("mapping.queue", self.queue >= 1, "at least 1", self.queue)?;
+        check(
+            "mapping.ba_iterations",
+            self.ba_iterations >= 1,
+            "at least 1",
+            self.ba_iterations,
+        )
+    }
+}
+
+impl LoopClosingConfig {
+    fn check(&self) -> Result<()> {
+        check(
+            "loop_closing.min_score",
+            (-1.0..=1.0).contains(&self.min_score),
+            "a cosine in [-1, 1]",
+            self.min_score,
+        )?;
+        check(
+            "loop_closing.min_inliers",
+            self.min_inliers >= 6,
+            "at least 6",
+            self.min_inliers,
+        )?;
+        check(
+            "loop_closing.ransac_threshold_px",
+            self.ransac_threshold_px > 0.0,
+            "a positive number",
+            self.ransac_threshold_px,
+        )
+    }
+}
+// --- end SLAM back-end ---
+
 impl LogConfig {
     fn check(&self) -> Result<()> {
         Ok(())
@@ -515,6 +692,12 @@ config_root! {
     sim: SimConfig,
     /// `[features]`
     features: FeaturesConfig,
+    /// `[tracking]`
+    tracking: TrackingConfig,
+    /// `[mapping]`
+    mapping: MappingConfig,
+    /// `[loop_closing]`
+    loop_closing: LoopClosingConfig,
 }
 
 impl Config {

@@ -19,7 +19,9 @@ pub mod fusion;
 pub mod geometry;
 pub mod io;
 pub mod matching;
+pub mod place;
 pub mod sim;
+pub mod slam;
 pub mod solver;
 
 pub use error::{Error, Result};

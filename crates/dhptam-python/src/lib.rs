@@ -16,6 +16,7 @@ mod fusion;
 mod geometry;
 mod matching;
 mod sim;
+mod slam;
 mod solver;
 mod stereo;
 
@@ -92,6 +93,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(solver::_solve_bal_file, m)?)?;
     m.add_function(wrap_pyfunction!(solver::_solve_pose_graph_file, m)?)?;
     m.add_function(wrap_pyfunction!(solver::_bundle_adjust, m)?)?;
+    m.add_class::<slam::PySystem>()?;
+    m.add_function(wrap_pyfunction!(solver::solve_pnp_ransac, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;
     m.add_function(wrap_pyfunction!(_log_from_rust, m)?)?;
     m.add_function(wrap_pyfunction!(thread_count, m)?)?;

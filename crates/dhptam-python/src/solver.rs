@@ -5,10 +5,12 @@
 use dhptam_core::io::{BalObservation, BalProblem, PoseGraph};
 use dhptam_core::solver::pose_graph::{solve_pose_graph2, solve_pose_graph3};
 use dhptam_core::solver::{
-    solve_bal, BundleOptions, LinearSolver, LmOptions, LmReport, Loss, PoseGraphOptions,
+    solve_bal, BundleOptions, LinearSolver, LmOptions, LmReport, Loss, PnpRansacOptions,
+    PoseGraphOptions, StereoIntrinsics,
 };
+use nalgebra::{Vector2, Vector3};
 use numpy::ndarray::Array2;
-use numpy::{IntoPyArray, PyArray2, PyReadonlyArray1, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -240,4 +242,63 @@ pub fn _bundle_adjust<'py>(
     let cams = Array2::from_shape_fn((n, 9), |(i, c)| problem.cameras[i][c]).into_pyarray(py);
     let pts = Array2::from_shape_fn((m, 3), |(j, c)| problem.points[j][c]).into_pyarray(py);
     Ok((cams, pts, report_dict(py, &report, threads)?))
+}
+
+/// RANSAC PnP (P3P + refinement) of a pinhole camera: world points (N, 3) and their pixels
+/// (N, 2). Returns (cam_from_world (4, 4), inliers (N,) bool, iterations), or None when no
+/// model reaches `min_inliers`.
+#[pyfunction]
+#[pyo3(signature = (points_world, pixels, fx, fy, cx, cy, *, threshold_px=2.0, confidence=0.999,
+    max_iterations=1000, min_inliers=10, seed=0))]
+#[allow(clippy::too_many_arguments)]
+#[allow(clippy::type_complexity)]
+pub fn solve_pnp_ransac<'py>(
+    py: Python<'py>,
+    points_world: &Bound<'py, PyAny>,
+    pixels: &Bound<'py, PyAny>,
+    fx: f64,
+    fy: f64,
+    cx: f64,
+    cy: f64,
+    threshold_px: f64,
+    confidence: f64,
+    max_iterations: usize,
+    min_inliers: usize,
+    seed: u64,
+) -> PyResult<Option<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<bool>>, usize)>> {
+    let points = arrays::rows(points_world, 3, "points_world")?;
+    let px = arrays::rows(pixels, 2, "pixels")?;
+    let points: Vec<Vector3<f64>> = points
+        .as_slice()?
+        .chunks_exact(3)
+        .map(|p| Vector3::new(p[0], p[1], p[2]))
+        .collect();
+    let px: Vec<Vector2<f64>> = px
+        .as_slice()?
+        .chunks_exact(2)
+        .map(|p| Vector2::new(p[0], p[1]))
+        .collect();
+    let k = StereoIntrinsics {
+        fx,
+        fy,
+        cx,
+        cy,
+        baseline: 0.0,
+    };
+    let options = PnpRansacOptions {
+        threshold_px,
+        confidence,
+        max_iterations,
+        min_inliers,
+        seed,
+    };
+    let result = py
+        .detach(|| dhptam_core::solver::solve_pnp_ransac(&k, &points, &px, &options))
+        .py()?;
+    Ok(result.map(|r| {
+        let m = r.cam_from_world.matrix();
+        let pose = Array2::from_shape_fn((4, 4), |(i, j)| m[(i, j)]).into_pyarray(py);
+        let inliers = numpy::ndarray::Array1::from_vec(r.inliers).into_pyarray(py);
+        (pose, inliers, r.iterations)
+    }))
 }

@@ -101,6 +101,9 @@ pub enum Termination {
     MaxIterations,
     /// The trust region collapsed without finding a decrease.
     NoDecrease,
+    /// The caller asked the solve to stop ([`LeastSquares::interrupted`]); the estimate is
+    /// the best one reached so far.
+    Interrupted,
 }
 
 impl Termination {
@@ -112,6 +115,7 @@ impl Termination {
             Termination::ParameterTolerance => "parameter_tolerance",
             Termination::MaxIterations => "max_iterations",
             Termination::NoDecrease => "no_decrease",
+            Termination::Interrupted => "interrupted",
         }
     }
 }
@@ -179,6 +183,11 @@ pub trait LeastSquares {
     fn accept(&mut self);
     /// ‖x‖₂ of the current estimate, for the step tolerance.
     fn state_norm(&self) -> f64;
+    /// Whether the caller asked the solve to stop; checked before every iteration. Since only
+    /// decreasing steps are accepted, the current estimate is then the best one so far.
+    fn interrupted(&self) -> bool {
+        false
+    }
 }
 
 /// Runs Levenberg–Marquardt on `problem` from its current estimate.
@@ -200,6 +209,9 @@ pub fn solve<P: LeastSquares + ?Sized>(problem: &mut P, options: &LmOptions) -> 
     let mut successful_steps = 0;
     let mut gradient_max = problem.linearize();
     let termination = loop {
+        if problem.interrupted() {
+            break Termination::Interrupted;
+        }
         if gradient_max <= options.gradient_tolerance {
             break Termination::GradientTolerance;
         }

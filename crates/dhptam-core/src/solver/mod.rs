@@ -4,16 +4,20 @@
 pub mod ba;
 pub mod linear;
 pub mod lm;
+pub mod pnp;
 pub mod pose;
 pub mod pose_graph;
 pub mod robust;
+pub mod stereo_ba;
 
 pub use ba::{solve_bal, BundleAdjustment, BundleOptions};
 pub use linear::LinearSolver;
 pub use lm::{solve, LeastSquares, LmOptions, LmReport, Termination};
+pub use pnp::{solve_pnp_ransac, PnpRansacOptions, PnpResult};
 pub use pose::{refine_pose, PoseObservation, PoseOptions, PoseResult, StereoIntrinsics};
 pub use pose_graph::{
     solve_pose_graph2, solve_pose_graph3, GraphPose, PoseGraphOptions, PoseGraphSe2, PoseGraphSe3,
     PoseGraphSolver,
 };
 pub use robust::{Corrector, Loss};
+pub use stereo_ba::{solve_stereo_ba, BaKeyframe, BaObservation, StereoBaOptions, StereoBaResult};

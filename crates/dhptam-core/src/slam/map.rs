@@ -1,0 +1,212 @@
+//! The map shared by tracking, mapping and loop closing: keyframes and map points in arenas
+//! keyed by `u64` ids, with the covisibility graph and the per-frame trajectory.
+//!
+//! Ordered maps (`BTreeMap`) keep every iteration order independent of hashing, so the
+//! synchronous mode gives the same results on every run.
+
+use std::collections::BTreeMap;
+
+use nalgebra::Vector3;
+
+use crate::geometry::Se3;
+use crate::matching::{OwnedDescriptor, OwnedDescriptors};
+
+/// A keyframe: a tracked stereo frame kept in the map.
+#[derive(Clone, Debug)]
+pub struct Keyframe {
+    /// Id in [`Map::keyframes`].
+    pub id: u64,
+    /// Timestamp, nanoseconds.
+    pub t_ns: i64,
+    /// Pose of the rectified left camera, `world_from_cam`.
+    pub world_from_cam: Se3,
+    /// Left keypoints (x = column, y = row), rectified pixels.
+    pub keypoints: Vec<[f32; 2]>,
+    /// Matched right-image column per keypoint, rectified pixels; NaN when unmatched.
+    pub u_right: Vec<f32>,
+    /// Left descriptors, one row per keypoint.
+    pub descriptors: OwnedDescriptors,
+    /// Map point observed by each keypoint, if any.
+    pub points: Vec<Option<u64>>,
+    /// Covisibility: keyframe id → number of map points both observe.
+    pub covisible: BTreeMap<u64, u32>,
+    /// Map points tracked in the frame that became this keyframe (the keyframe criterion's
+    /// reference count).
+    pub tracked: usize,
+}
+
+impl Keyframe {
+    /// Camera centre in the world frame, metres.
+    pub fn centre(&self) -> Vector3<f64> {
+        self.world_from_cam.translation
+    }
+
+    /// The `n` most covisible keyframes, heaviest first (ties by id).
+    pub fn best_covisible(&self, n: usize) -> Vec<u64> {
+        let mut v: Vec<(u64, u32)> = self.covisible.iter().map(|(&k, &w)| (k, w)).collect();
+        v.sort_by(|a, b| b.1.cmp(&a.1).then(a.0.cmp(&b.0)));
+        v.into_iter().take(n).map(|(k, _)| k).collect()
+    }
+}
+
+/// A 3-D landmark.
+#[derive(Clone, Debug)]
+pub struct MapPoint {
+    /// Id in [`Map::points`].
+    pub id: u64,
+    /// Position in the world frame, metres.
+    pub position: Vector3<f64>,
+    /// Representative descriptor (the one of the observation that created the point).
+    pub descriptor: OwnedDescriptor,
+    /// Observations: keyframe id → keypoint index in that keyframe.
+    pub observations: BTreeMap<u64, u32>,
+    /// Mean viewing direction (unit, world frame, from the cameras towards the point).
+    pub normal: Vector3<f64>,
+    /// The keyframe that created the point (its reference for loop corrections).
+    pub first_keyframe: u64,
+}
+
+/// One tracked frame of the trajectory, stored relative to its reference keyframe so that
+/// keyframe corrections (bundle adjustment, loop closure) carry over to it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameRecord {
+    /// Timestamp, nanoseconds.
+    pub t_ns: i64,
+    /// The reference keyframe.
+    pub keyframe: u64,
+    /// Pose of the frame in the keyframe's camera frame, `kf_from_cam`.
+    pub kf_from_cam: Se3,
+}
+
+/// Keyframes, map points, covisibility, loops and the trajectory.
+#[derive(Clone, Debug, Default)]
+pub struct Map {
+    /// Keyframes by id.
+    pub keyframes: BTreeMap<u64, Keyframe>,
+    /// Map points by id.
+    pub points: BTreeMap<u64, MapPoint>,
+    /// Next keyframe id to hand out.
+    pub next_keyframe: u64,
+    /// Next map point id to hand out.
+    pub next_point: u64,
+    /// Accepted loop closures (query keyframe id, matched keyframe id).
+    pub loops: Vec<(u64, u64)>,
+    /// Every tracked frame, in order.
+    pub trajectory: Vec<FrameRecord>,
+}
+
+impl Map {
+    /// World pose of a trajectory record; `None` if its keyframe is gone.
+    pub fn frame_pose(&self, record: &FrameRecord) -> Option<Se3> {
+        self.keyframes
+            .get(&record.keyframe)
+            .map(|kf| kf.world_from_cam * record.kf_from_cam)
+    }
+
+    /// Adds the observation (keyframe, keypoint) → point and updates covisibility.
+    /// Does nothing if the keyframe or point is missing or the point is already observed
+    /// by this keyframe.
+    pub fn add_observation(&mut self, kf: u64, feature: usize, point: u64) {
+        let Some(p) = self.points.get_mut(&point) else {
+            return;
+        };
+        if p.observations.contains_key(&kf) || !self.keyframes.contains_key(&kf) {
+            return;
+        }
+        let others: Vec<u64> = p.observations.keys().copied().collect();
+        p.observations.insert(kf, feature as u32);
+        for o in others {
+            if let Some(k) = self.keyframes.get_mut(&o) {
+                *k.covisible.entry(kf).or_insert(0) += 1;
+            }
+            if let Some(k) = self.keyframes.get_mut(&kf) {
+                *k.covisible.entry(o).or_insert(0) += 1;
+            }
+        }
+        if let Some(k) = self.keyframes.get_mut(&kf) {
+            if let Some(slot) = k.points.get_mut(feature) {
+                *slot = Some(point);
+            }
+        }
+        self.update_normal(point);
+    }
+
+    /// Removes the observation of `point` by `kf` and updates covisibility.
+    pub fn remove_observation(&mut self, kf: u64, point: u64) {
+        let Some(p) = self.points.get_mut(&point) else {
+            return;
+        };
+        let Some(feature) = p.observations.remove(&kf) else {
+            return;
+        };
+        let others: Vec<u64> = p.observations.keys().copied().collect();
+        for o in others {
+            decrement(self.keyframes.get_mut(&o), kf);
+            decrement(self.keyframes.get_mut(&kf), o);
+        }
+        if let Some(k) = self.keyframes.get_mut(&kf) {
+            if let Some(slot) = k.points.get_mut(feature as usize) {
+                *slot = None;
+            }
+        }
+    }
+
+    /// Removes a map point with all its observations.
+    pub fn remove_point(&mut self, point: u64) {
+        let observers: Vec<u64> = match self.points.get(&point) {
+            Some(p) => p.observations.keys().copied().collect(),
+            None => return,
+        };
+        for kf in observers {
+            self.remove_observation(kf, point);
+        }
+        self.points.remove(&point);
+    }
+
+    /// Recomputes a point's mean viewing direction from its observers' centres.
+    pub fn update_normal(&mut self, point: u64) {
+        let Some(p) = self.points.get(&point) else {
+            return;
+        };
+        let mut sum = Vector3::zeros();
+        for kf in p.observations.keys() {
+            if let Some(k) = self.keyframes.get(kf) {
+                let d = p.position - k.centre();
+                let n = d.norm();
+                if n > 0.0 {
+                    sum += d / n;
+                }
+            }
+        }
+        let n = sum.norm();
+        if n > 0.0 {
+            if let Some(p) = self.points.get_mut(&point) {
+                p.normal = sum / n;
+            }
+        }
+    }
+
+    /// Map points observed by the given keyframes, ascending ids, no repeats.
+    pub fn points_of(&self, keyframes: &[u64]) -> Vec<u64> {
+        let mut ids: Vec<u64> = keyframes
+            .iter()
+            .filter_map(|k| self.keyframes.get(k))
+            .flat_map(|k| k.points.iter().flatten().copied())
+            .filter(|p| self.points.contains_key(p))
+            .collect();
+        ids.sort_unstable();
+        ids.dedup();
+        ids
+    }
+}
+
+fn decrement(kf: Option<&mut Keyframe>, other: u64) {
+    if let Some(k) = kf {
+        if let Some(w) = k.covisible.get_mut(&other) {
+            *w -= 1;
+            if *w == 0 {
+                k.covisible.remove(&other);
+            }
+        }
+    }
+}

@@ -1,0 +1,401 @@
+//! [`System`]: the facade that owns the map, tracks frames on the caller's thread and drives
+//! local mapping (and loop closing) either on worker threads or inline.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
+use std::sync::{Arc, Mutex, RwLock};
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use super::map::Map;
+use super::mapping::local_mapping;
+use super::tracking::{
+    bootstrap, commit_tracked, last_pose, stereo_match, track_local_map, StereoFrame, TrackContext,
+    TrackerState,
+};
+use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
+use crate::config::Config;
+use crate::error::{Error, Result};
+use crate::geometry::Se3;
+use crate::matching::{DescriptorKind, Descriptors};
+
+/// One image's features: keypoints `(x, y)` row-major as `[x0, y0, x1, y1, …]` (rectified
+/// pixels) and one descriptor row per keypoint.
+#[derive(Clone, Copy, Debug)]
+pub struct FrameFeatures<'a> {
+    /// Keypoints, 2 numbers each.
+    pub keypoints: &'a [f32],
+    /// Descriptors, one row per keypoint.
+    pub descriptors: Descriptors<'a>,
+}
+
+/// Running statistics of one stage's wall time.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StageStats {
+    /// Number of calls.
+    pub count: u64,
+    /// Total seconds.
+    pub total_s: f64,
+    /// Longest call, seconds.
+    pub max_s: f64,
+}
+
+impl StageStats {
+    /// Mean seconds per call (0 without calls).
+    pub fn mean_s(&self) -> f64 {
+        if self.count == 0 {
+            0.0
+        } else {
+            self.total_s / self.count as f64
+        }
+    }
+}
+
+/// State shared by the tracker and the worker threads.
+pub(crate) struct Shared {
+    pub(crate) map: RwLock<Map>,
+    pub(crate) timings: Mutex<BTreeMap<&'static str, StageStats>>,
+    /// Set by the tracker when a keyframe is queued: the running bundle adjustment stops.
+    pub(crate) interrupt: AtomicBool,
+    /// Set by shutdown: workers skip queued work and exit.
+    pub(crate) shutdown: AtomicBool,
+    pub(crate) calib: StereoCalibration,
+    pub(crate) config: Config,
+}
+
+impl Shared {
+    pub(crate) fn time<T>(&self, stage: &'static str, f: impl FnOnce() -> T) -> T {
+        let start = Instant::now();
+        let out = f();
+        let s = start.elapsed().as_secs_f64();
+        let mut t = lock(&self.timings);
+        let e = t.entry(stage).or_default();
+        e.count += 1;
+        e.total_s += s;
+        e.max_s = e.max_s.max(s);
+        out
+    }
+
+    /// Local mapping for keyframe `kf` (logs and swallows numerical failures: the map keeps
+    /// the tracker's estimates).
+    pub(crate) fn map_keyframe(&self, kf: u64, stop: Option<&AtomicBool>) {
+        let c = &self.config;
+        let r = self.time("local_ba", || {
+            local_mapping(
+                &self.map,
+                kf,
+                &self.calib,
+                &c.mapping,
+                &c.tracking,
+                &c.triangulation,
+                stop,
+            )
+        });
+        if let Err(e) = r {
+            log::warn!("mapping: keyframe {kf}: bundle adjustment failed: {e}");
+        }
+    }
+}
+
+/// The SLAM system. See the module documentation.
+pub struct System {
+    shared: Arc<Shared>,
+    state: TrackerState,
+    descriptor: Option<(DescriptorKind, usize)>,
+    threaded: bool,
+    mapping_tx: Option<SyncSender<u64>>,
+    workers: Vec<JoinHandle<()>>,
+    closed: bool,
+}
+
+fn mapping_worker(shared: Arc<Shared>, rx: Receiver<u64>) {
+    while let Ok(kf) = rx.recv() {
+        if shared.shutdown.load(Ordering::Acquire) {
+            break;
+        }
+        shared.interrupt.store(false, Ordering::Release);
+        shared.map_keyframe(kf, Some(&shared.interrupt));
+    }
+}
+
+impl System {
+    /// A system for `calib` with `config` (validated); `threaded` runs mapping on its own
+    /// thread, otherwise inline and deterministic.
+    pub fn new(calib: StereoCalibration, config: Config, threaded: bool) -> Result<Self> {
+        config.validate()?;
+        let shared = Arc::new(Shared {
+            map: RwLock::new(Map::default()),
+            timings: Mutex::new(BTreeMap::new()),
+            interrupt: AtomicBool::new(false),
+            shutdown: AtomicBool::new(false),
+            calib,
+            config,
+        });
+        let mut system = Self {
+            shared,
+            state: TrackerState::default(),
+            descriptor: None,
+            threaded,
+            mapping_tx: None,
+            workers: Vec::new(),
+            closed: false,
+        };
+        if threaded {
+            let (tx, rx) = sync_channel(system.shared.config.mapping.queue as usize);
+            let shared = Arc::clone(&system.shared);
+            let handle = std::thread::Builder::new()
+                .name("dhptam-mapping".into())
+                .spawn(move || mapping_worker(shared, rx))
+                .map_err(|e| Error::Numerical {
+                    operation: "starting the mapping thread",
+                    reason: e.to_string(),
+                })?;
+            system.mapping_tx = Some(tx);
+            system.workers.push(handle);
+        }
+        Ok(system)
+    }
+
+    /// The calibration.
+    pub fn calibration(&self) -> &StereoCalibration {
+        &self.shared.calib
+    }
+
+    /// Whether mapping runs on its own thread.
+    pub fn threaded(&self) -> bool {
+        self.threaded
+    }
+
+    fn check_features(&mut self, side: &str, f: &FrameFeatures) -> Result<Vec<[f32; 2]>> {
+        let n = f.descriptors.len();
+        if f.keypoints.len() != 2 * n {
+            return Err(Error::invalid(
+                format!("{side}.keypoints"),
+                format!("{n} rows of (x, y), one per descriptor"),
+                format!("{} numbers", f.keypoints.len()),
+            ));
+        }
+        if let Some(i) = f.keypoints.iter().position(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                format!("{side}.keypoints[{}]", i / 2),
+                "finite coordinates",
+                f.keypoints[i],
+            ));
+        }
+        let this = (f.descriptors.kind(), f.descriptors.width());
+        match self.descriptor {
+            Some(d) if d != this => {
+                return Err(Error::invalid(
+                    format!("{side}.descriptors"),
+                    format!("{:?} descriptors of width {} (as the map's)", d.0, d.1),
+                    format!("{:?} of width {}", this.0, this.1),
+                ))
+            }
+            _ => self.descriptor = Some(this),
+        }
+        Ok(f.keypoints.chunks_exact(2).map(|c| [c[0], c[1]]).collect())
+    }
+
+    /// Tracks one stereo frame; inserts a keyframe and runs (or queues) mapping when needed.
+    pub fn track(
+        &mut self,
+        t_ns: i64,
+        left: FrameFeatures,
+        right: FrameFeatures,
+    ) -> Result<TrackResult> {
+        if self.closed {
+            return Err(Error::invalid(
+                "system",
+                "a running system",
+                "one shut down",
+            ));
+        }
+        let left_xy = self.check_features("left", &left)?;
+        let right_xy = self.check_features("right", &right)?;
+        let shared = Arc::clone(&self.shared);
+        let c = &shared.config;
+        let ctx = TrackContext {
+            calib: &shared.calib,
+            cfg: &c.tracking,
+            tri: &c.triangulation,
+        };
+        let start = Instant::now();
+        let u_right = shared.time("stereo_match", || {
+            stereo_match(
+                ctx.calib,
+                ctx.cfg,
+                ctx.tri,
+                &left_xy,
+                left.descriptors,
+                &right_xy,
+                right.descriptors,
+            )
+        });
+        let frame = StereoFrame {
+            t_ns,
+            keypoints: left_xy,
+            u_right,
+            descriptors: left.descriptors,
+        };
+        let outcome = if self.state.reference.is_none() {
+            let mut map = write_lock(&shared.map);
+            bootstrap(&mut map, &mut self.state, &frame, &ctx)
+        } else {
+            let (tracked, previous, predicted) = {
+                let map = read_lock(&shared.map);
+                let previous = last_pose(&map, &self.state);
+                let last_cam_from_world = previous.unwrap_or_else(Se3::identity).inverse();
+                let predicted = self.state.velocity * last_cam_from_world;
+                let tracked = shared.time("track_local_map", || {
+                    track_local_map(&map, &self.state, &frame, &ctx, predicted)
+                });
+                (tracked, previous, predicted)
+            };
+            match tracked.filter(|t| t.inliers >= ctx.cfg.min_tracked as usize) {
+                Some(t) => {
+                    let mut map = write_lock(&shared.map);
+                    commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, previous, false)
+                }
+                None => {
+                    if !self.state.lost {
+                        log::info!("tracking: lost at t={t_ns} ns");
+                    }
+                    self.state.lost = true;
+                    super::tracking::FrameOutcome {
+                        state: TrackState::Lost,
+                        world_from_cam: predicted.inverse(),
+                        inliers: 0,
+                        keyframe: None,
+                    }
+                }
+            }
+        };
+        {
+            let mut t = lock(&shared.timings);
+            let e = t.entry("track").or_default();
+            let s = start.elapsed().as_secs_f64();
+            e.count += 1;
+            e.total_s += s;
+            e.max_s = e.max_s.max(s);
+        }
+        if let Some(kf) = outcome.keyframe {
+            self.after_keyframe(kf);
+        }
+        Ok(TrackResult {
+            t_ns,
+            world_from_cam: outcome.world_from_cam,
+            state: outcome.state,
+            inliers: outcome.inliers,
+            keyframe: outcome.keyframe.is_some(),
+        })
+    }
+
+    fn after_keyframe(&mut self, kf: u64) {
+        match &self.mapping_tx {
+            Some(tx) => {
+                self.shared.interrupt.store(true, Ordering::Release);
+                if tx.send(kf).is_err() {
+                    log::warn!("mapping thread gone; keyframe {kf} not optimised");
+                }
+            }
+            None => self.shared.map_keyframe(kf, None),
+        }
+    }
+
+    /// Timestamps and `world_from_cam` of every tracked frame, in order.
+    pub fn trajectory(&self) -> Vec<(i64, Se3)> {
+        let map = read_lock(&self.shared.map);
+        map.trajectory
+            .iter()
+            .filter_map(|r| map.frame_pose(r).map(|p| (r.t_ns, p)))
+            .collect()
+    }
+
+    /// Timestamps and `world_from_cam` of the keyframes, by id.
+    pub fn keyframe_trajectory(&self) -> Vec<(i64, Se3)> {
+        let map = read_lock(&self.shared.map);
+        map.keyframes
+            .values()
+            .map(|k| (k.t_ns, k.world_from_cam))
+            .collect()
+    }
+
+    /// Map point positions, world frame, metres, by id.
+    pub fn map_points(&self) -> Vec<[f64; 3]> {
+        let map = read_lock(&self.shared.map);
+        map.points
+            .values()
+            .map(|p| [p.position.x, p.position.y, p.position.z])
+            .collect()
+    }
+
+    /// Accepted loop closures as (query keyframe timestamp, matched keyframe timestamp), ns.
+    pub fn loop_closures(&self) -> Vec<(i64, i64)> {
+        let map = read_lock(&self.shared.map);
+        map.loops
+            .iter()
+            .filter_map(|(q, m)| Some((map.keyframes.get(q)?.t_ns, map.keyframes.get(m)?.t_ns)))
+            .collect()
+    }
+
+    /// Per-stage wall-time statistics.
+    pub fn timing(&self) -> BTreeMap<String, StageStats> {
+        lock(&self.shared.timings)
+            .iter()
+            .map(|(k, v)| (k.to_string(), *v))
+            .collect()
+    }
+
+    /// A read view of the map (for tests and tools).
+    pub fn with_map<T>(&self, f: impl FnOnce(&Map) -> T) -> T {
+        f(&read_lock(&self.shared.map))
+    }
+
+    /// Writes the map and the tracker state to `path` (atomically: a temporary file renamed).
+    pub fn save_map(&self, path: &Path) -> Result<()> {
+        let map = read_lock(&self.shared.map);
+        persist::save(path, &self.shared.calib, self.descriptor, &map, &self.state)
+    }
+
+    /// Replaces the map and the tracker state with those saved in `path`; the calibration
+    /// must be the one the map was saved with.
+    pub fn load_map(&mut self, path: &Path) -> Result<()> {
+        let (calib, descriptor, map, state) = persist::load(path)?;
+        if calib != self.shared.calib {
+            return Err(Error::invalid(
+                format!("calibration of {}", path.display()),
+                format!("{:?} (this system's)", self.shared.calib),
+                format!("{calib:?}"),
+            ));
+        }
+        *write_lock(&self.shared.map) = map;
+        self.state = state;
+        self.descriptor = descriptor;
+        Ok(())
+    }
+
+    /// Stops the worker threads: queued keyframes are dropped, a running bundle adjustment is
+    /// interrupted; returns when they have exited. Tracking afterwards is an error.
+    pub fn shutdown(&mut self) {
+        if self.closed {
+            return;
+        }
+        self.closed = true;
+        self.shared.shutdown.store(true, Ordering::Release);
+        self.shared.interrupt.store(true, Ordering::Release);
+        self.mapping_tx = None;
+        for w in self.workers.drain(..) {
+            if w.join().is_err() {
+                log::error!("a SLAM worker thread panicked");
+            }
+        }
+    }
+}
+
+impl Drop for System {
+    fn drop(&mut self) {
+        self.shutdown();
+    }
+}

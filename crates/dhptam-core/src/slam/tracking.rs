@@ -1,0 +1,601 @@
+//! Tracking: rectified stereo matching of a frame, projection-guided matching against the
+//! local map, motion-only refinement, the keyframe decision and keyframe creation.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{Vector2, Vector3};
+use rayon::prelude::*;
+
+use super::map::{FrameRecord, Keyframe, Map, MapPoint};
+use super::{StereoCalibration, TrackState};
+use crate::config::{TrackingConfig, TriangulationConfig};
+use crate::geometry::{triangulate_rectified, Se3};
+use crate::matching::{best_two, DescriptorKind, Descriptors, MatchOptions};
+use crate::solver::{refine_pose, LmOptions, Loss, PoseObservation, PoseOptions};
+
+/// A frame's left features with their stereo matches.
+pub struct StereoFrame<'a> {
+    /// Timestamp, nanoseconds.
+    pub t_ns: i64,
+    /// Left keypoints (x, y), rectified pixels.
+    pub keypoints: Vec<[f32; 2]>,
+    /// Right column of each left keypoint's stereo match; NaN when unmatched.
+    pub u_right: Vec<f32>,
+    /// Left descriptors.
+    pub descriptors: Descriptors<'a>,
+}
+
+/// The descriptor thresholds of the configuration for a descriptor kind.
+pub fn match_options(cfg: &TrackingConfig, kind: DescriptorKind) -> MatchOptions {
+    let mut o = MatchOptions::for_kind(kind);
+    if cfg.max_descriptor_distance > 0.0 {
+        o.max_distance = cfg.max_descriptor_distance as f32;
+    }
+    o.ratio = cfg.ratio as f32;
+    o
+}
+
+/// Matches left to right keypoints of a rectified pair: same row within
+/// `cfg.stereo_row_px`, disparity in the range of the triangulation depth limits, then
+/// the descriptor distance and ratio tests. Returns the right column per left keypoint
+/// (NaN when unmatched).
+pub fn stereo_match(
+    calib: &StereoCalibration,
+    cfg: &TrackingConfig,
+    tri: &TriangulationConfig,
+    left_xy: &[[f32; 2]],
+    left: Descriptors,
+    right_xy: &[[f32; 2]],
+    right: Descriptors,
+) -> Vec<f32> {
+    let options = match_options(cfg, left.kind());
+    let band = cfg.stereo_row_px as f32;
+    let focal_baseline = calib.fx * calib.baseline_m;
+    let d_min = (focal_baseline / tri.max_depth_m) as f32;
+    let d_max = (focal_baseline / tri.min_depth_m.max(1e-6)) as f32;
+    // Right keypoints bucketed by integer row.
+    let rows = calib.height as usize + 1;
+    let mut by_row: Vec<Vec<u32>> = vec![Vec::new(); rows];
+    for (j, p) in right_xy.iter().enumerate() {
+        if p[1].is_finite() && p[1] >= 0.0 && (p[1] as usize) < rows {
+            by_row[p[1] as usize].push(j as u32);
+        }
+    }
+    left_xy
+        .par_iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let (x, y) = (p[0], p[1]);
+            let lo = (y - band).floor().max(0.0) as usize;
+            let hi = ((y + band).floor().max(0.0) as usize).min(rows - 1);
+            if lo > hi {
+                return f32::NAN;
+            }
+            let candidates = (lo..=hi).flat_map(|r| by_row[r].iter()).filter_map(|&j| {
+                let q = right_xy[j as usize];
+                let d = x - q[0];
+                ((q[1] - y).abs() <= band && d >= d_min && d <= d_max).then_some(j as usize)
+            });
+            match best_two(left.row(i), right, candidates) {
+                Some((j, best, second))
+                    if best <= options.max_distance && best < options.ratio * second =>
+                {
+                    right_xy[j][0]
+                }
+                _ => f32::NAN,
+            }
+        })
+        .collect()
+}
+
+/// Keypoint indices in square cells, for lookups around a pixel.
+pub struct Grid {
+    cell: f32,
+    cols: usize,
+    rows: usize,
+    cells: Vec<Vec<u32>>,
+}
+
+impl Grid {
+    /// Bins the keypoints of an image of `width` × `height` pixels.
+    pub fn new(keypoints: &[[f32; 2]], width: u32, height: u32, cell: f32) -> Self {
+        let cols = (width as f32 / cell).ceil().max(1.0) as usize;
+        let rows = (height as f32 / cell).ceil().max(1.0) as usize;
+        let mut cells = vec![Vec::new(); cols * rows];
+        for (i, p) in keypoints.iter().enumerate() {
+            if let Some(c) = Self::index(cell, cols, rows, p[0], p[1]) {
+                cells[c].push(i as u32);
+            }
+        }
+        Self {
+            cell,
+            cols,
+            rows,
+            cells,
+        }
+    }
+
+    fn index(cell: f32, cols: usize, rows: usize, x: f32, y: f32) -> Option<usize> {
+        if !(x >= 0.0 && y >= 0.0) {
+            return None;
+        }
+        let (c, r) = ((x / cell) as usize, (y / cell) as usize);
+        (c < cols && r < rows).then_some(r * cols + c)
+    }
+
+    /// Keypoints within `radius` pixels of (x, y).
+    pub fn near<'g>(
+        &'g self,
+        keypoints: &'g [[f32; 2]],
+        x: f32,
+        y: f32,
+        radius: f32,
+    ) -> impl Iterator<Item = usize> + 'g {
+        let c0 = ((x - radius) / self.cell).floor().max(0.0) as usize;
+        let c1 = (((x + radius) / self.cell).floor().max(0.0) as usize).min(self.cols - 1);
+        let r0 = ((y - radius) / self.cell).floor().max(0.0) as usize;
+        let r1 = (((y + radius) / self.cell).floor().max(0.0) as usize).min(self.rows - 1);
+        let r2 = radius * radius;
+        (r0..=r1)
+            .flat_map(move |r| (c0..=c1).map(move |c| r * self.cols + c))
+            .flat_map(move |c| self.cells[c].iter())
+            .map(|&i| i as usize)
+            .filter(move |&i| {
+                let p = keypoints[i];
+                (p[0] - x).powi(2) + (p[1] - y).powi(2) <= r2
+            })
+    }
+}
+
+/// Projection-guided search: every candidate map point projected with `cam_from_world`
+/// (frustum and viewing-angle culled) is matched to the nearest-in-descriptor keypoint within
+/// `radius`; each keypoint keeps its best point. Returns per keypoint (point id, distance).
+#[allow(clippy::too_many_arguments)]
+pub fn search_projected(
+    map: &Map,
+    points: &[u64],
+    frame: &StereoFrame,
+    grid: &Grid,
+    calib: &StereoCalibration,
+    cfg: &TrackingConfig,
+    tri: &TriangulationConfig,
+    cam_from_world: &Se3,
+    radius: f32,
+) -> Vec<Option<(u64, f32)>> {
+    let options = match_options(cfg, frame.descriptors.kind());
+    let rotation = cam_from_world.rotation.matrix();
+    let t = cam_from_world.translation;
+    let centre = cam_from_world.inverse().translation;
+    let cos_max = cfg.max_view_angle_deg.to_radians().cos();
+    let (w, h) = (calib.width as f64, calib.height as f64);
+    let found: Vec<Option<(usize, u64, f32)>> = points
+        .par_iter()
+        .map(|&id| {
+            let p = map.points.get(&id)?;
+            let pc = rotation * p.position + t;
+            if pc.z < tri.min_depth_m || pc.z > tri.max_depth_m {
+                return None;
+            }
+            let u = calib.fx * pc.x / pc.z + calib.cx;
+            let v = calib.fy * pc.y / pc.z + calib.cy;
+            if !(u >= 0.0 && v >= 0.0 && u < w && v < h) {
+                return None;
+            }
+            let ray = p.position - centre;
+            if ray.dot(&p.normal) < cos_max * ray.norm() {
+                return None;
+            }
+            let ur = (u - calib.fx * calib.baseline_m / pc.z) as f32;
+            let (u, v) = (u as f32, v as f32);
+            let candidates = grid.near(&frame.keypoints, u, v, radius).filter(|&i| {
+                let m = frame.u_right[i];
+                !m.is_finite() || (m - ur).abs() <= radius
+            });
+            let (i, best, second) = best_two(p.descriptor.view(), frame.descriptors, candidates)?;
+            (best <= options.max_distance && best < options.ratio * second).then_some((i, id, best))
+        })
+        .collect();
+    let mut per_feature: Vec<Option<(u64, f32)>> = vec![None; frame.keypoints.len()];
+    for (i, id, d) in found.into_iter().flatten() {
+        match per_feature[i] {
+            Some((_, old)) if old <= d => {}
+            _ => per_feature[i] = Some((id, d)),
+        }
+    }
+    per_feature
+}
+
+/// The tracker's state between frames.
+#[derive(Clone, Debug)]
+pub struct TrackerState {
+    /// The last tracked frame relative to its keyframe.
+    pub last: Option<FrameRecord>,
+    /// Constant-velocity model: `cam_from_world(k) · world_from_cam(k−1)`.
+    pub velocity: Se3,
+    /// The reference keyframe (the newest keyframe).
+    pub reference: Option<u64>,
+    /// Whether the last frame was lost.
+    pub lost: bool,
+}
+
+impl Default for TrackerState {
+    fn default() -> Self {
+        Self {
+            last: None,
+            velocity: Se3::identity(),
+            reference: None,
+            lost: false,
+        }
+    }
+}
+
+/// The outcome of matching and refining one frame against the local map.
+pub struct Tracked {
+    /// Refined `cam_from_world`.
+    pub cam_from_world: Se3,
+    /// Inlier map point per keypoint.
+    pub matches: Vec<Option<u64>>,
+    /// Number of inliers.
+    pub inliers: usize,
+}
+
+/// Observations for refinement from keypoint → point matches.
+fn observations(
+    map: &Map,
+    frame: &StereoFrame,
+    matches: &[Option<u64>],
+) -> (Vec<PoseObservation>, Vec<usize>) {
+    let mut obs = Vec::new();
+    let mut which = Vec::new();
+    for (i, m) in matches.iter().enumerate() {
+        let Some(p) = m.and_then(|id| map.points.get(&id)) else {
+            continue;
+        };
+        let kp = frame.keypoints[i];
+        let pixel = Vector2::new(kp[0] as f64, kp[1] as f64);
+        let ur = frame.u_right[i];
+        obs.push(if ur.is_finite() {
+            PoseObservation::Stereo {
+                point: p.position,
+                pixel,
+                u_right: ur as f64,
+            }
+        } else {
+            PoseObservation::Mono {
+                point: p.position,
+                pixel,
+            }
+        });
+        which.push(i);
+    }
+    (obs, which)
+}
+
+/// Options of the motion-only refinement.
+pub fn pose_options(cfg: &TrackingConfig, tri: &TriangulationConfig) -> PoseOptions {
+    PoseOptions {
+        loss: Loss::Huber(cfg.huber_px),
+        min_depth: tri.min_depth_m.max(1e-6),
+        outlier_threshold_sq: cfg.huber_px * cfg.huber_px,
+        lm: LmOptions {
+            max_iterations: cfg.refine_iterations as usize,
+            ..Default::default()
+        },
+    }
+}
+
+/// Refines a pose from matches twice, dropping the first pass's outliers.
+pub fn refine_matches(
+    map: &Map,
+    frame: &StereoFrame,
+    mut matches: Vec<Option<u64>>,
+    predicted: Se3,
+    calib: &StereoCalibration,
+    options: &PoseOptions,
+) -> Option<Tracked> {
+    let k = calib.intrinsics();
+    let mut pose = predicted;
+    for _ in 0..2 {
+        let (obs, which) = observations(map, frame, &matches);
+        if obs.len() < 6 {
+            return None;
+        }
+        let r = refine_pose(pose, &k, &obs, options);
+        let r = match r {
+            Ok(r) => r,
+            Err(e) => {
+                log::debug!("tracking: refinement failed: {e}");
+                return None;
+            }
+        };
+        pose = r.cam_from_world;
+        for (k, &i) in which.iter().enumerate() {
+            if !r.inliers[k] {
+                matches[i] = None;
+            }
+        }
+    }
+    let inliers = matches.iter().flatten().count();
+    Some(Tracked {
+        cam_from_world: pose,
+        matches,
+        inliers,
+    })
+}
+
+/// Inserts a keyframe for `frame` at `world_from_cam`: keypoints matched to map points
+/// (`matches`) become observations, unmatched stereo keypoints that triangulate within the
+/// limits become new map points. Returns the keyframe id and its number of map points.
+pub fn insert_keyframe(
+    map: &mut Map,
+    frame: &StereoFrame,
+    world_from_cam: Se3,
+    matches: &[Option<u64>],
+    calib: &StereoCalibration,
+    tri: &TriangulationConfig,
+) -> (u64, usize) {
+    let id = map.next_keyframe;
+    map.next_keyframe += 1;
+    let n = frame.keypoints.len();
+    map.keyframes.insert(
+        id,
+        Keyframe {
+            id,
+            t_ns: frame.t_ns,
+            world_from_cam,
+            keypoints: frame.keypoints.clone(),
+            u_right: frame.u_right.clone(),
+            descriptors: frame.descriptors.to_owned(),
+            points: vec![None; n],
+            covisible: BTreeMap::new(),
+            tracked: 0,
+        },
+    );
+    let pinhole = calib.pinhole();
+    let centre = world_from_cam.translation;
+    for i in 0..n {
+        if let Some(Some(p)) = matches.get(i) {
+            map.add_observation(id, i, *p);
+            continue;
+        }
+        let ur = frame.u_right[i];
+        if !ur.is_finite() {
+            continue;
+        }
+        let kp = frame.keypoints[i];
+        let uv = Vector2::new(kp[0] as f64, kp[1] as f64);
+        let Ok(t) = triangulate_rectified(&pinhole, calib.baseline_m, &uv, ur as f64, tri) else {
+            continue;
+        };
+        let position = world_from_cam.transform_point(&t.point_world);
+        let pid = map.next_point;
+        map.next_point += 1;
+        let normal = (position - centre)
+            .try_normalize(0.0)
+            .unwrap_or(Vector3::z());
+        map.points.insert(
+            pid,
+            MapPoint {
+                id: pid,
+                position,
+                descriptor: frame.descriptors.row(i).to_owned(),
+                observations: BTreeMap::new(),
+                normal,
+                first_keyframe: id,
+            },
+        );
+        map.add_observation(id, i, pid);
+    }
+    let count = map.keyframes[&id].points.iter().flatten().count();
+    if let Some(kf) = map.keyframes.get_mut(&id) {
+        kf.tracked = count;
+    }
+    (id, count)
+}
+
+/// Removes a keyframe and the points only it observed.
+pub fn remove_keyframe(map: &mut Map, id: u64) {
+    let Some(kf) = map.keyframes.get(&id) else {
+        return;
+    };
+    let points: Vec<u64> = kf.points.iter().flatten().copied().collect();
+    for p in points {
+        map.remove_observation(id, p);
+        if map
+            .points
+            .get(&p)
+            .is_some_and(|p| p.observations.is_empty())
+        {
+            map.points.remove(&p);
+        }
+    }
+    map.keyframes.remove(&id);
+}
+
+/// What tracking one frame produced.
+pub struct FrameOutcome {
+    /// Tracking state of the frame.
+    pub state: TrackState,
+    /// `world_from_cam` (for a lost frame: the constant-velocity prediction).
+    pub world_from_cam: Se3,
+    /// Inlier map points.
+    pub inliers: usize,
+    /// The keyframe created from this frame, if any.
+    pub keyframe: Option<u64>,
+}
+
+/// The settings tracking reads.
+pub struct TrackContext<'c> {
+    /// Calibration.
+    pub calib: &'c StereoCalibration,
+    /// `[tracking]`.
+    pub cfg: &'c TrackingConfig,
+    /// `[triangulation]` (depth limits of stereo points and the frustum).
+    pub tri: &'c TriangulationConfig,
+}
+
+/// Bootstraps the map from the first stereo frame (identity pose).
+pub fn bootstrap(
+    map: &mut Map,
+    state: &mut TrackerState,
+    frame: &StereoFrame,
+    ctx: &TrackContext,
+) -> FrameOutcome {
+    let (id, count) = insert_keyframe(map, frame, Se3::identity(), &[], ctx.calib, ctx.tri);
+    if count < ctx.cfg.init_min_points as usize {
+        log::info!(
+            "tracking: t={} ns: {count} stereo points, {} needed to initialise",
+            frame.t_ns,
+            ctx.cfg.init_min_points
+        );
+        remove_keyframe(map, id);
+        return FrameOutcome {
+            state: TrackState::Lost,
+            world_from_cam: Se3::identity(),
+            inliers: 0,
+            keyframe: None,
+        };
+    }
+    log::info!(
+        "tracking: initialised at t={} ns with {count} points",
+        frame.t_ns
+    );
+    let record = FrameRecord {
+        t_ns: frame.t_ns,
+        keyframe: id,
+        kf_from_cam: Se3::identity(),
+    };
+    map.trajectory.push(record);
+    *state = TrackerState {
+        last: Some(record),
+        velocity: Se3::identity(),
+        reference: Some(id),
+        lost: false,
+    };
+    FrameOutcome {
+        state: TrackState::Initialised,
+        world_from_cam: Se3::identity(),
+        inliers: count,
+        keyframe: Some(id),
+    }
+}
+
+/// Matches a frame against the local map around the prediction and refines its pose.
+pub fn track_local_map(
+    map: &Map,
+    state: &TrackerState,
+    frame: &StereoFrame,
+    ctx: &TrackContext,
+    predicted: Se3,
+) -> Option<Tracked> {
+    let reference = state.reference?;
+    let kf = map.keyframes.get(&reference)?;
+    let mut local = vec![reference];
+    local.extend(kf.best_covisible(ctx.cfg.local_keyframes as usize));
+    let points = map.points_of(&local);
+    let grid = Grid::new(
+        &frame.keypoints,
+        ctx.calib.width,
+        ctx.calib.height,
+        ctx.cfg.cell_px as f32,
+    );
+    let search = |radius: f64| {
+        search_projected(
+            map,
+            &points,
+            frame,
+            &grid,
+            ctx.calib,
+            ctx.cfg,
+            ctx.tri,
+            &predicted,
+            radius as f32,
+        )
+    };
+    let mut found = search(ctx.cfg.radius_px);
+    if found.iter().flatten().count() < ctx.cfg.min_matches as usize {
+        found = search(ctx.cfg.wide_radius_px);
+    }
+    let matches: Vec<Option<u64>> = found.into_iter().map(|m| m.map(|(p, _)| p)).collect();
+    refine_matches(
+        map,
+        frame,
+        matches,
+        predicted,
+        ctx.calib,
+        &pose_options(ctx.cfg, ctx.tri),
+    )
+}
+
+/// The last tracked frame's `world_from_cam`, through its (possibly corrected) keyframe.
+pub fn last_pose(map: &Map, state: &TrackerState) -> Option<Se3> {
+    state.last.as_ref().and_then(|r| map.frame_pose(r))
+}
+
+/// Records a tracked frame: keyframe decision, keyframe insertion, trajectory, tracker state.
+pub fn commit_tracked(
+    map: &mut Map,
+    state: &mut TrackerState,
+    frame: &StereoFrame,
+    ctx: &TrackContext,
+    tracked: Tracked,
+    previous_world_from_cam: Option<Se3>,
+    relocalised: bool,
+) -> FrameOutcome {
+    let world_from_cam = tracked.cam_from_world.inverse();
+    state.velocity = match (relocalised, previous_world_from_cam) {
+        (false, Some(prev)) => tracked.cam_from_world * prev,
+        _ => Se3::identity(),
+    };
+    let reference_tracked = state
+        .reference
+        .and_then(|r| map.keyframes.get(&r))
+        .map_or(0, |k| k.tracked);
+    let need_keyframe = relocalised
+        || state
+            .reference
+            .is_none_or(|r| !map.keyframes.contains_key(&r))
+        || (tracked.inliers as f64) < ctx.cfg.keyframe_ratio * reference_tracked as f64
+        || tracked.inliers < ctx.cfg.keyframe_min_tracked as usize;
+    let mut keyframe = None;
+    if need_keyframe {
+        let (id, count) = insert_keyframe(
+            map,
+            frame,
+            world_from_cam,
+            &tracked.matches,
+            ctx.calib,
+            ctx.tri,
+        );
+        log::debug!(
+            "tracking: keyframe {id} at t={} ns: {} tracked, {count} points",
+            frame.t_ns,
+            tracked.inliers
+        );
+        state.reference = Some(id);
+        keyframe = Some(id);
+    }
+    let record = state
+        .reference
+        .and_then(|r| map.keyframes.get(&r))
+        .map(|kf| FrameRecord {
+            t_ns: frame.t_ns,
+            keyframe: kf.id,
+            kf_from_cam: kf.world_from_cam.inverse() * world_from_cam,
+        });
+    if let Some(record) = record {
+        map.trajectory.push(record);
+        state.last = Some(record);
+    }
+    state.lost = false;
+    FrameOutcome {
+        state: if relocalised {
+            TrackState::Relocalised
+        } else {
+            TrackState::Ok
+        },
+        world_from_cam,
+        inliers: tracked.inliers,
+        keyframe,
+    }
+}

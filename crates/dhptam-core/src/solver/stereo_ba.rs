@@ -1,0 +1,771 @@
+//! Local bundle adjustment of SE(3) keyframes and 3-D points from rectified stereo and
+//! monocular pixel observations, as the mapping thread runs it over its sliding window.
+//!
+//! Unknowns: per free keyframe δξ = [ρ, φ] applied on the left, `cam_from_world ← exp(δξ) ·
+//! cam_from_world` (as [`super::pose`]), per point δX. A point P = R X + t in the camera
+//! frame is observed as (u_l, v) and, for a stereo match, u_r of the right camera at
+//! +baseline along x:
+//!
+//! ```text
+//! u_l = fx X/Z + cx,   v = fy Y/Z + cy,   u_r = fx (X − b)/Z + cx
+//! ∂P/∂δξ = [I | −[P]×],   ∂P/∂X = R
+//! ```
+//!
+//! The residual is predicted − measured (3 rows for stereo, 2 for mono; the mono third row is
+//! zero), under a robust loss on its squared norm. The points are eliminated with the Schur
+//! complement exactly as in [`super::ba`]: V* is block-diagonal (3×3 per point) and the reduced
+//! keyframe system S = U* − W V*⁻¹ Wᵀ has 6×6 blocks on the covisibility pattern of the free
+//! keyframes; [`BlockCholesky`] factorises it densely for the window sizes the mapping thread
+//! uses (sparse above [`super::linear::DENSE_LIMIT`] unknowns). Fixed keyframes enter the
+//! residuals but not the unknowns; at least one fixed keyframe (or the stereo baseline and a
+//! fixed keyframe) removes the gauge freedom, otherwise the LM damping alone holds the gauge.
+//!
+//! Observations whose point lies at depth Z ≤ `min_depth` contribute nothing at that estimate.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use nalgebra::{Matrix3, SMatrix, SVector, Vector2, Vector3};
+use rayon::prelude::*;
+
+use super::linear::{BlockCholesky, BlockPattern, LinearSolver};
+use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
+use super::pose::StereoIntrinsics;
+use super::robust::{Corrector, Loss};
+use crate::error::{ensure_finite, Error, Result};
+use crate::geometry::so3::hat;
+use crate::geometry::Se3;
+
+type M36 = SMatrix<f64, 3, 6>;
+type M63 = SMatrix<f64, 6, 3>;
+type M66 = SMatrix<f64, 6, 6>;
+type V6 = SVector<f64, 6>;
+
+/// One keyframe of the window.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BaKeyframe {
+    /// Pose of the rectified left camera: maps world points into the camera frame.
+    pub cam_from_world: Se3,
+    /// Held at its value (older covisible keyframes, the gauge anchor).
+    pub fixed: bool,
+}
+
+/// A keyframe's observation of a point in its rectified left image.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct BaObservation {
+    /// Index into the keyframes.
+    pub keyframe: usize,
+    /// Index into the points.
+    pub point: usize,
+    /// Measured left pixel (u, v): x = column, y = row.
+    pub pixel: Vector2<f64>,
+    /// Measured right-image column of a stereo match; `None` for a monocular observation.
+    pub u_right: Option<f64>,
+}
+
+/// Options of [`solve_stereo_ba`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoBaOptions {
+    /// Loss on each observation's squared pixel error. Default Huber with δ = √7.815 px.
+    pub loss: Loss,
+    /// Points nearer than this (metres, along the optical axis) are ignored. Default 1e-6.
+    pub min_depth: f64,
+    /// Squared pixel error above which an observation is an outlier in the result (stereo and
+    /// mono alike). Default 7.815 (95 % χ², 3 dof, σ = 1 px).
+    pub outlier_threshold_sq: f64,
+    /// Worker threads for residuals, Jacobians and the elimination (0: one per core).
+    /// Default 1: the mapping thread shares the machine with tracking.
+    pub threads: usize,
+    /// The LM loop's options. Default: those of [`LmOptions`] with 10 iterations.
+    pub lm: LmOptions,
+}
+
+impl Default for StereoBaOptions {
+    fn default() -> Self {
+        Self {
+            loss: Loss::Huber(7.815f64.sqrt()),
+            min_depth: 1e-6,
+            outlier_threshold_sq: 7.815,
+            threads: 1,
+            lm: LmOptions {
+                max_iterations: 10,
+                ..Default::default()
+            },
+        }
+    }
+}
+
+/// What [`solve_stereo_ba`] did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoBaResult {
+    /// The LM report (termination [`super::Termination::Interrupted`] when stopped).
+    pub report: LmReport,
+    /// Per observation, in the caller's order: in front of the camera with a squared error at
+    /// most `outlier_threshold_sq`, at the returned estimate.
+    pub inliers: Vec<bool>,
+}
+
+/// The residual (predicted − measured; third row zero for mono), its Jacobian with respect to
+/// the left-multiplied pose update [ρ, φ] and with respect to the world point, and the number
+/// of residual rows; `None` when the point lies at depth ≤ `min_depth`.
+pub fn stereo_ba_residual(
+    k: &StereoIntrinsics,
+    cam_from_world: &Se3,
+    point: &Vector3<f64>,
+    pixel: &Vector2<f64>,
+    u_right: Option<f64>,
+    min_depth: f64,
+) -> Option<(Vector3<f64>, M36, Matrix3<f64>, usize)> {
+    let pose = PoseState::new(*cam_from_world);
+    residual_jacobians(k, &pose, point, pixel, u_right, min_depth)
+        .map(|(r, jp, jx)| (r, jp, jx, if u_right.is_some() { 3 } else { 2 }))
+}
+
+/// A pose with its rotation matrix cached.
+#[derive(Clone, Copy, Debug)]
+struct PoseState {
+    se3: Se3,
+    rotation: Matrix3<f64>,
+}
+
+impl PoseState {
+    fn new(se3: Se3) -> Self {
+        Self {
+            se3,
+            rotation: se3.rotation.matrix(),
+        }
+    }
+
+    fn camera_point(&self, x: &Vector3<f64>) -> Vector3<f64> {
+        self.rotation * x + self.se3.translation
+    }
+}
+
+/// The residual alone (cost evaluation).
+#[inline]
+fn residual_only(
+    k: &StereoIntrinsics,
+    pose: &PoseState,
+    x: &Vector3<f64>,
+    pixel: &Vector2<f64>,
+    u_right: Option<f64>,
+    min_depth: f64,
+) -> Option<Vector3<f64>> {
+    let p = pose.camera_point(x);
+    // NaN depths fail this test too.
+    if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let iz = 1.0 / p.z;
+    Some(Vector3::new(
+        k.fx * p.x * iz + k.cx - pixel.x,
+        k.fy * p.y * iz + k.cy - pixel.y,
+        u_right.map_or(0.0, |ur| k.fx * (p.x - k.baseline) * iz + k.cx - ur),
+    ))
+}
+
+#[inline]
+fn residual_jacobians(
+    k: &StereoIntrinsics,
+    pose: &PoseState,
+    x: &Vector3<f64>,
+    pixel: &Vector2<f64>,
+    u_right: Option<f64>,
+    min_depth: f64,
+) -> Option<(Vector3<f64>, M36, Matrix3<f64>)> {
+    let p = pose.camera_point(x);
+    if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let iz = 1.0 / p.z;
+    // ∂(u_l, v, u_r)/∂P.
+    let mut proj = Matrix3::zeros();
+    proj[(0, 0)] = k.fx * iz;
+    proj[(0, 2)] = -k.fx * p.x * iz * iz;
+    proj[(1, 1)] = k.fy * iz;
+    proj[(1, 2)] = -k.fy * p.y * iz * iz;
+    let mut r = Vector3::new(
+        k.fx * p.x * iz + k.cx - pixel.x,
+        k.fy * p.y * iz + k.cy - pixel.y,
+        0.0,
+    );
+    if let Some(ur) = u_right {
+        proj[(2, 0)] = k.fx * iz;
+        proj[(2, 2)] = -k.fx * (p.x - k.baseline) * iz * iz;
+        r.z = k.fx * (p.x - k.baseline) * iz + k.cx - ur;
+    }
+    let mut jp = M36::zeros();
+    jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&proj);
+    jp.fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&(-(proj * hat(&p))));
+    Some((r, jp, proj * pose.rotation))
+}
+
+/// An observation regrouped by point.
+#[derive(Clone, Copy, Debug)]
+struct Obs {
+    keyframe: usize,
+    free: Option<usize>,
+    pixel: Vector2<f64>,
+    u_right: Option<f64>,
+}
+
+struct StereoBa<'a> {
+    k: StereoIntrinsics,
+    loss: Loss,
+    min_depth: f64,
+    stop: Option<&'a AtomicBool>,
+    poses: Vec<PoseState>,
+    points: Vec<Vector3<f64>>,
+    candidate_poses: Vec<PoseState>,
+    candidate_points: Vec<Vector3<f64>>,
+    free_keyframes: Vec<usize>,
+    /// Observations sorted by point: `point_obs[j]..point_obs[j + 1]` index `obs`.
+    point_obs: Vec<usize>,
+    obs: Vec<Obs>,
+    /// The caller's index of each sorted observation.
+    original: Vec<usize>,
+    /// Per free keyframe, its sorted observations.
+    camera_obs: Vec<Vec<usize>>,
+    /// Per point, the reduced-system slot (and whether the block goes in transposed) of each
+    /// ordered pair a ≤ b of its free observations; `pair_start[j]` indexes the first.
+    pair_slots: Vec<(usize, bool)>,
+    pair_start: Vec<usize>,
+    pattern: BlockPattern,
+    cholesky: BlockCholesky,
+    // Linearisation (per sorted observation, per free keyframe, per point).
+    jp: Vec<M36>,
+    residual: Vec<Vector3<f64>>,
+    w: Vec<M63>,
+    u: Vec<M66>,
+    gc: Vec<V6>,
+    v: Vec<Matrix3<f64>>,
+    gp: Vec<Vector3<f64>>,
+    // Step.
+    v_inv: Vec<Matrix3<f64>>,
+    step_c: Vec<V6>,
+    step_p: Vec<Vector3<f64>>,
+}
+
+impl StereoBa<'_> {
+    fn cost_of(&self, poses: &[PoseState], points: &[Vector3<f64>]) -> f64 {
+        let (k, loss, min_depth) = (&self.k, &self.loss, self.min_depth);
+        let (point_obs, obs) = (&self.point_obs, &self.obs);
+        0.5 * (0..points.len())
+            .into_par_iter()
+            .with_min_len(64)
+            .map(|j| {
+                obs[point_obs[j]..point_obs[j + 1]]
+                    .iter()
+                    .filter_map(|o| {
+                        residual_only(
+                            k,
+                            &poses[o.keyframe],
+                            &points[j],
+                            &o.pixel,
+                            o.u_right,
+                            min_depth,
+                        )
+                    })
+                    .map(|r| loss.evaluate(r.norm_squared())[0])
+                    .sum::<f64>()
+            })
+            .sum::<f64>()
+    }
+}
+
+fn clamped_diagonal<const N: usize>(m: &SMatrix<f64, N, N>, lo: f64, hi: f64) -> SVector<f64, N> {
+    SVector::<f64, N>::from_fn(|i, _| m[(i, i)].clamp(lo, hi))
+}
+
+impl LeastSquares for StereoBa<'_> {
+    fn cost(&mut self) -> f64 {
+        self.cost_of(&self.poses, &self.points)
+    }
+
+    fn linearize(&mut self) -> f64 {
+        let (k, loss, min_depth) = (&self.k, &self.loss, self.min_depth);
+        let (poses, points, point_obs, obs) =
+            (&self.poses, &self.points, &self.point_obs, &self.obs);
+        // Each point owns a contiguous range of the per-observation arrays.
+        type PointSlices<'a> = (&'a mut [M36], &'a mut [Vector3<f64>], &'a mut [M63]);
+        let mut per_point: Vec<PointSlices> = Vec::with_capacity(points.len());
+        {
+            let (mut jp, mut res, mut w) =
+                (&mut self.jp[..], &mut self.residual[..], &mut self.w[..]);
+            for j in 0..points.len() {
+                let m = point_obs[j + 1] - point_obs[j];
+                let (a, b) = jp.split_at_mut(m);
+                let (c, d) = res.split_at_mut(m);
+                let (e, f) = w.split_at_mut(m);
+                per_point.push((a, c, e));
+                jp = b;
+                res = d;
+                w = f;
+            }
+        }
+        per_point
+            .into_par_iter()
+            .zip(self.v.par_iter_mut())
+            .zip(self.gp.par_iter_mut())
+            .enumerate()
+            .with_min_len(64)
+            .for_each(|(j, (((jp, res, w), v), gp))| {
+                *v = Matrix3::zeros();
+                *gp = Vector3::zeros();
+                let x = &points[j];
+                for (local, o) in obs[point_obs[j]..point_obs[j + 1]].iter().enumerate() {
+                    let Some((mut r, mut a, mut b)) = residual_jacobians(
+                        k,
+                        &poses[o.keyframe],
+                        x,
+                        &o.pixel,
+                        o.u_right,
+                        min_depth,
+                    ) else {
+                        jp[local] = M36::zeros();
+                        res[local] = Vector3::zeros();
+                        w[local] = M63::zeros();
+                        continue;
+                    };
+                    if *loss != Loss::Trivial {
+                        let corr = Corrector::new(loss, r.norm_squared());
+                        if !corr.is_scalar() {
+                            let rr = r * r.transpose() * corr.alpha_over_s;
+                            a -= rr * a;
+                            b -= rr * b;
+                        }
+                        a *= corr.sqrt_rho1;
+                        b *= corr.sqrt_rho1;
+                        r *= corr.residual_scale;
+                    }
+                    let bt = b.transpose();
+                    *v += bt * b;
+                    *gp += bt * r;
+                    w[local] = if o.free.is_some() {
+                        a.transpose() * b
+                    } else {
+                        M63::zeros()
+                    };
+                    jp[local] = a;
+                    res[local] = r;
+                }
+            });
+        let (jp, residual) = (&self.jp, &self.residual);
+        self.u
+            .par_iter_mut()
+            .zip(self.gc.par_iter_mut())
+            .zip(self.camera_obs.par_iter())
+            .for_each(|((u, g), list)| {
+                *u = M66::zeros();
+                *g = V6::zeros();
+                for &s in list {
+                    let at = jp[s].transpose();
+                    *u += at * jp[s];
+                    *g += at * residual[s];
+                }
+            });
+        let gmax_c = self.gc.iter().map(|g| g.amax()).fold(0.0, f64::max);
+        let gmax_p = self.gp.iter().map(|g| g.amax()).fold(0.0, f64::max);
+        gmax_c.max(gmax_p)
+    }
+
+    fn compute_step(&mut self, mu: f64, lo: f64, hi: f64) -> Option<Step> {
+        let n_free = self.u.len();
+        let dim = self.pattern.dim();
+        let ok = self
+            .v_inv
+            .par_iter_mut()
+            .zip(self.v.par_iter())
+            .with_min_len(256)
+            .all(|(vi, v)| {
+                let d = clamped_diagonal(v, lo, hi);
+                match (v + Matrix3::from_diagonal(&(d * mu))).try_inverse() {
+                    Some(inv) if inv.iter().all(|x| x.is_finite()) => {
+                        *vi = inv;
+                        true
+                    }
+                    _ => false,
+                }
+            });
+        if !ok {
+            return None;
+        }
+        let n_values = self.pattern.stored_blocks() * 36;
+        let (point_obs, obs, w, gp, v_inv) =
+            (&self.point_obs, &self.obs, &self.w, &self.gp, &self.v_inv);
+        let (pair_slots, pair_start) = (&self.pair_slots, &self.pair_start);
+        // −Σ W V*⁻¹ Wᵀ into the blocks and Σ W V*⁻¹ g_p into the right-hand side, accumulated
+        // per worker and summed.
+        let (mut values, mut rhs) = (0..self.points.len())
+            .into_par_iter()
+            .with_min_len(128)
+            .fold(
+                || (vec![0.0; n_values], vec![0.0; dim]),
+                |(mut values, mut rhs), j| {
+                    let vi = &v_inv[j];
+                    let range = point_obs[j]..point_obs[j + 1];
+                    let mut slot = pair_start[j];
+                    for a in range.clone() {
+                        let Some(ca) = obs[a].free else { continue };
+                        let wv = w[a] * vi;
+                        let b = wv * gp[j];
+                        for (x, y) in rhs[ca * 6..ca * 6 + 6].iter_mut().zip(b.iter()) {
+                            *x += y;
+                        }
+                        for bi in a..range.end {
+                            let Some(cb) = obs[bi].free else { continue };
+                            let (s, transposed) = pair_slots[slot];
+                            slot += 1;
+                            let block = wv * w[bi].transpose();
+                            let dst = &mut values[s * 36..s * 36 + 36];
+                            if transposed {
+                                let bt = block.transpose();
+                                dst.iter_mut().zip(bt.iter()).for_each(|(x, y)| *x -= y);
+                            } else {
+                                dst.iter_mut().zip(block.iter()).for_each(|(x, y)| *x -= y);
+                            }
+                            // Two observations of one point by one keyframe meet on a diagonal
+                            // block through both orders; add the other half here.
+                            if bi != a && ca == cb {
+                                let bt = block.transpose();
+                                dst.iter_mut().zip(bt.iter()).for_each(|(x, y)| *x -= y);
+                            }
+                        }
+                    }
+                    (values, rhs)
+                },
+            )
+            .reduce(
+                || (vec![0.0; n_values], vec![0.0; dim]),
+                |(mut va, mut ra), (vb, rb)| {
+                    va.iter_mut().zip(&vb).for_each(|(x, y)| *x += y);
+                    ra.iter_mut().zip(&rb).for_each(|(x, y)| *x += y);
+                    (va, ra)
+                },
+            );
+        let mut camera_diag = Vec::with_capacity(n_free);
+        for i in 0..n_free {
+            let d = clamped_diagonal(&self.u[i], lo, hi);
+            let ud = self.u[i] + M66::from_diagonal(&(d * mu));
+            let s = self.pattern.diagonal_slot(i);
+            values[s * 36..s * 36 + 36]
+                .iter_mut()
+                .zip(ud.iter())
+                .for_each(|(x, y)| *x += y);
+            rhs[i * 6..i * 6 + 6]
+                .iter_mut()
+                .zip(self.gc[i].iter())
+                .for_each(|(x, y)| *x -= y);
+            camera_diag.push(d);
+        }
+        if n_free > 0 && !self.cholesky.solve(&self.pattern, &values, &mut rhs) {
+            return None;
+        }
+        if rhs.iter().any(|x| !x.is_finite()) {
+            return None;
+        }
+        for (i, s) in self.step_c.iter_mut().enumerate() {
+            *s = V6::from_column_slice(&rhs[i * 6..i * 6 + 6]);
+        }
+        let (step_c, v) = (&self.step_c, &self.v);
+        // Back-substitution δX = −V*⁻¹ (g_p + Σ Wᵀ δξ) and the model-decrease terms.
+        let (mut neg_g_dot, mut d_dot, mut norm2) = self
+            .step_p
+            .par_iter_mut()
+            .enumerate()
+            .with_min_len(256)
+            .map(|(j, dp)| {
+                let mut b = gp[j];
+                for s in point_obs[j]..point_obs[j + 1] {
+                    if let Some(c) = obs[s].free {
+                        b += w[s].transpose() * step_c[c];
+                    }
+                }
+                *dp = -(v_inv[j] * b);
+                let d = clamped_diagonal(&v[j], lo, hi);
+                (
+                    -gp[j].dot(dp),
+                    dp.component_mul(dp).dot(&d),
+                    dp.norm_squared(),
+                )
+            })
+            .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
+        for ((dc, g), d) in self.step_c.iter().zip(&self.gc).zip(&camera_diag) {
+            neg_g_dot -= g.dot(dc);
+            d_dot += dc.component_mul(dc).dot(d);
+            norm2 += dc.norm_squared();
+        }
+        Some(Step {
+            model_decrease: 0.5 * (neg_g_dot + mu * d_dot),
+            norm: norm2.sqrt(),
+        })
+    }
+
+    fn candidate_cost(&mut self) -> f64 {
+        self.candidate_poses.copy_from_slice(&self.poses);
+        for (f, &i) in self.free_keyframes.iter().enumerate() {
+            self.candidate_poses[i] = PoseState::new(Se3::exp(&self.step_c[f]) * self.poses[i].se3);
+        }
+        for ((c, p), d) in self
+            .candidate_points
+            .iter_mut()
+            .zip(&self.points)
+            .zip(&self.step_p)
+        {
+            *c = p + d;
+        }
+        self.cost_of(&self.candidate_poses, &self.candidate_points)
+    }
+
+    fn accept(&mut self) {
+        std::mem::swap(&mut self.poses, &mut self.candidate_poses);
+        std::mem::swap(&mut self.points, &mut self.candidate_points);
+    }
+
+    fn state_norm(&self) -> f64 {
+        let c: f64 = self
+            .free_keyframes
+            .iter()
+            .map(|&i| self.poses[i].se3.log().norm_squared())
+            .sum();
+        let p: f64 = self.points.iter().map(|p| p.norm_squared()).sum();
+        (c + p).sqrt()
+    }
+
+    fn interrupted(&self) -> bool {
+        self.stop.is_some_and(|s| s.load(Ordering::Relaxed))
+    }
+}
+
+fn check_inputs(
+    k: &StereoIntrinsics,
+    keyframes: &[BaKeyframe],
+    points: &[Vector3<f64>],
+    observations: &[BaObservation],
+    options: &StereoBaOptions,
+) -> Result<()> {
+    options.lm.check()?;
+    ensure_finite("intrinsics", &[k.fx, k.fy, k.cx, k.cy, k.baseline])?;
+    if !(k.fx > 0.0 && k.fy > 0.0) {
+        return Err(Error::invalid(
+            "intrinsics fx, fy",
+            "positive focal lengths",
+            format!("{}, {}", k.fx, k.fy),
+        ));
+    }
+    if let Some(s) = options.loss.scale() {
+        if !(s.is_finite() && s > 0.0) {
+            return Err(Error::invalid("loss scale", "a positive finite number", s));
+        }
+    }
+    ensure_finite("min_depth", &[options.min_depth])?;
+    if options.outlier_threshold_sq.is_nan() || options.outlier_threshold_sq < 0.0 {
+        return Err(Error::invalid(
+            "outlier_threshold_sq",
+            "a non-negative number",
+            options.outlier_threshold_sq,
+        ));
+    }
+    if observations.is_empty() {
+        return Err(Error::invalid("observations", "at least one", 0));
+    }
+    for (i, kf) in keyframes.iter().enumerate() {
+        let t = kf.cam_from_world.translation;
+        let q = kf.cam_from_world.rotation.to_quaternion_xyzw();
+        ensure_finite(
+            &format!("keyframes[{i}].cam_from_world"),
+            &[t.x, t.y, t.z, q[0], q[1], q[2], q[3]],
+        )?;
+    }
+    for (j, p) in points.iter().enumerate() {
+        ensure_finite(&format!("points[{j}]"), p.as_slice())?;
+    }
+    let (n_kf, n_pt) = (keyframes.len(), points.len());
+    for (s, o) in observations.iter().enumerate() {
+        if o.keyframe >= n_kf || o.point >= n_pt {
+            return Err(Error::invalid(
+                format!("observations[{s}]"),
+                format!("keyframe < {n_kf} and point < {n_pt}"),
+                format!("keyframe {} point {}", o.keyframe, o.point),
+            ));
+        }
+        let ur = o.u_right.unwrap_or(0.0);
+        ensure_finite(
+            &format!("observations[{s}] (u, v, u_right)"),
+            &[o.pixel.x, o.pixel.y, ur],
+        )?;
+        if o.u_right.is_some() && k.baseline <= 0.0 {
+            return Err(Error::invalid(
+                "intrinsics baseline",
+                "a positive baseline (metres) for stereo observations",
+                k.baseline,
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Local bundle adjustment: refines the free keyframes' `cam_from_world` and every point
+/// (world frame, metres) in place, from rectified-stereo and monocular observations of the
+/// rectified left camera `k` (right camera at +`k.baseline` along x).
+///
+/// `stop`, when given and set (by another thread), ends the solve before its next iteration
+/// with [`super::Termination::Interrupted`]; the estimate written back is then the best one
+/// reached. Points without observations and free keyframes without observations stay where
+/// they are.
+pub fn solve_stereo_ba(
+    k: &StereoIntrinsics,
+    keyframes: &mut [BaKeyframe],
+    points: &mut [Vector3<f64>],
+    observations: &[BaObservation],
+    options: &StereoBaOptions,
+    stop: Option<&AtomicBool>,
+) -> Result<StereoBaResult> {
+    check_inputs(k, keyframes, points, observations, options)?;
+    let (n_kf, n_pt, n_obs) = (keyframes.len(), points.len(), observations.len());
+    let mut free_index = vec![None; n_kf];
+    let mut free_keyframes = Vec::new();
+    for (i, kf) in keyframes.iter().enumerate() {
+        if !kf.fixed {
+            free_index[i] = Some(free_keyframes.len());
+            free_keyframes.push(i);
+        }
+    }
+    let n_free = free_keyframes.len();
+    // Counting sort of the observations by point.
+    let mut point_obs = vec![0usize; n_pt + 1];
+    for o in observations {
+        point_obs[o.point + 1] += 1;
+    }
+    for j in 0..n_pt {
+        point_obs[j + 1] += point_obs[j];
+    }
+    let mut fill = point_obs.clone();
+    let mut obs = vec![
+        Obs {
+            keyframe: 0,
+            free: None,
+            pixel: Vector2::zeros(),
+            u_right: None,
+        };
+        n_obs
+    ];
+    let mut original = vec![0usize; n_obs];
+    for (s, o) in observations.iter().enumerate() {
+        let at = fill[o.point];
+        fill[o.point] += 1;
+        obs[at] = Obs {
+            keyframe: o.keyframe,
+            free: free_index[o.keyframe],
+            pixel: o.pixel,
+            u_right: o.u_right,
+        };
+        original[at] = s;
+    }
+    let mut camera_obs = vec![Vec::new(); n_free];
+    for (s, o) in obs.iter().enumerate() {
+        if let Some(f) = o.free {
+            camera_obs[f].push(s);
+        }
+    }
+    let mut pairs = Vec::new();
+    for j in 0..n_pt {
+        let range = &obs[point_obs[j]..point_obs[j + 1]];
+        for (a, oa) in range.iter().enumerate() {
+            let Some(ca) = oa.free else { continue };
+            for ob in &range[a + 1..] {
+                if let Some(cb) = ob.free {
+                    if ca != cb {
+                        pairs.push((ca, cb));
+                    }
+                }
+            }
+        }
+    }
+    let pattern = BlockPattern::new(n_free, 6, pairs);
+    let mut pair_slots = Vec::new();
+    let mut pair_start = Vec::with_capacity(n_pt + 1);
+    for j in 0..n_pt {
+        pair_start.push(pair_slots.len());
+        let range = &obs[point_obs[j]..point_obs[j + 1]];
+        for (a, oa) in range.iter().enumerate() {
+            let Some(ca) = oa.free else { continue };
+            for ob in &range[a..] {
+                let Some(cb) = ob.free else { continue };
+                let slot = pattern.slot(ca.min(cb), ca.max(cb)).ok_or_else(|| {
+                    Error::numerical(
+                        "stereo bundle adjustment",
+                        "covisibility pattern incomplete",
+                    )
+                })?;
+                pair_slots.push((slot, ca > cb));
+            }
+        }
+    }
+    pair_start.push(pair_slots.len());
+    let threads = if options.threads == 0 {
+        std::thread::available_parallelism().map_or(1, |n| n.get())
+    } else {
+        options.threads
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .map_err(|e| Error::numerical("thread pool", e.to_string()))?;
+    let cholesky = BlockCholesky::new(&pattern, LinearSolver::Auto, threads)?;
+    let poses: Vec<PoseState> = keyframes
+        .iter()
+        .map(|kf| PoseState::new(kf.cam_from_world))
+        .collect();
+    let mut problem = StereoBa {
+        k: *k,
+        loss: options.loss,
+        min_depth: options.min_depth,
+        stop,
+        candidate_poses: poses.clone(),
+        candidate_points: points.to_vec(),
+        poses,
+        points: points.to_vec(),
+        free_keyframes,
+        point_obs,
+        obs,
+        original,
+        camera_obs,
+        pair_slots,
+        pair_start,
+        pattern,
+        cholesky,
+        jp: vec![M36::zeros(); n_obs],
+        residual: vec![Vector3::zeros(); n_obs],
+        w: vec![M63::zeros(); n_obs],
+        u: vec![M66::zeros(); n_free],
+        gc: vec![V6::zeros(); n_free],
+        v: vec![Matrix3::zeros(); n_pt],
+        gp: vec![Vector3::zeros(); n_pt],
+        v_inv: vec![Matrix3::zeros(); n_pt],
+        step_c: vec![V6::zeros(); n_free],
+        step_p: vec![Vector3::zeros(); n_pt],
+    };
+    let report = pool.install(|| lm::solve(&mut problem, &options.lm))?;
+    for (kf, pose) in keyframes.iter_mut().zip(&problem.poses) {
+        kf.cam_from_world = pose.se3;
+    }
+    points.copy_from_slice(&problem.points);
+    let mut inliers = vec![false; n_obs];
+    for j in 0..n_pt {
+        for s in problem.point_obs[j]..problem.point_obs[j + 1] {
+            let o = &problem.obs[s];
+            let r = residual_only(
+                k,
+                &problem.poses[o.keyframe],
+                &problem.points[j],
+                &o.pixel,
+                o.u_right,
+                options.min_depth,
+            );
+            inliers[problem.original[s]] =
+                r.is_some_and(|r| r.norm_squared() <= options.outlier_threshold_sq);
+        }
+    }
+    Ok(StereoBaResult { report, inliers })
+}

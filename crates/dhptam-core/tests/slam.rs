@@ -1,0 +1,180 @@
+//! End-to-end tests of the SLAM back-end on synthetic stereo feature sequences.
+
+use dhptam_core::config::Config;
+use dhptam_core::geometry::Se3;
+use dhptam_core::matching::Descriptors;
+use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
+use dhptam_core::slam::{FrameFeatures, System, TrackResult, TrackState};
+use nalgebra::{Matrix3, Vector3};
+
+fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
+    let dim = 32;
+    let left = FrameFeatures {
+        keypoints: &f.left.keypoints,
+        descriptors: Descriptors::float(&f.left.descriptors, dim).unwrap(),
+    };
+    let right = FrameFeatures {
+        keypoints: &f.right.keypoints,
+        descriptors: Descriptors::float(&f.right.descriptors, dim).unwrap(),
+    };
+    system.track(f.t_ns, left, right).unwrap()
+}
+
+/// RMS position error after the best rigid alignment (Horn/Umeyama without scale).
+fn ate(estimated: &[Vector3<f64>], truth: &[Vector3<f64>]) -> f64 {
+    let n = estimated.len() as f64;
+    let me = estimated.iter().sum::<Vector3<f64>>() / n;
+    let mt = truth.iter().sum::<Vector3<f64>>() / n;
+    let mut h = Matrix3::zeros();
+    for (e, t) in estimated.iter().zip(truth) {
+        h += (t - mt) * (e - me).transpose();
+    }
+    let svd = h.svd(true, true);
+    let (u, vt) = (svd.u.unwrap(), svd.v_t.unwrap());
+    let mut d = Matrix3::identity();
+    if (u * vt).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let r = u * d * vt;
+    let t = mt - r * me;
+    let sum: f64 = estimated
+        .iter()
+        .zip(truth)
+        .map(|(e, g)| (r * e + t - g).norm_squared())
+        .sum();
+    (sum / n).sqrt()
+}
+
+fn positions(poses: &[(i64, Se3)]) -> Vec<Vector3<f64>> {
+    poses.iter().map(|(_, p)| p.translation).collect()
+}
+
+#[test]
+fn tracks_every_frame_of_a_noisy_sequence_with_outliers() {
+    let o = SyntheticOptions::default();
+    let frames = generate(&o);
+    let mut system = System::new(o.calib, Config::default(), false).unwrap();
+    for f in &frames {
+        let r = track(&mut system, f);
+        assert!(
+            matches!(r.state, TrackState::Ok | TrackState::Initialised),
+            "frame {} lost ({} inliers)",
+            f.t_ns,
+            r.inliers
+        );
+    }
+    let traj = system.trajectory();
+    assert_eq!(traj.len(), frames.len());
+    let truth: Vec<Vector3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    let e = ate(&positions(&traj), &truth);
+    let kfs = system.keyframe_trajectory().len();
+    eprintln!(
+        "ATE {e:.4} m over {} frames, {kfs} keyframes, {:?}",
+        frames.len(),
+        system.timing()
+    );
+    assert!(e < 0.03, "ATE {e} m");
+    assert!(kfs > 2 && kfs < frames.len() / 2, "{kfs} keyframes");
+}
+
+#[test]
+fn save_load_continue_gives_the_same_poses() {
+    let o = SyntheticOptions {
+        frames: 120,
+        seed: 3,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let mut reference = System::new(o.calib, Config::default(), false).unwrap();
+    let expected: Vec<TrackResult> = frames.iter().map(|f| track(&mut reference, f)).collect();
+
+    let dir = std::env::temp_dir().join(format!("dhptam-slam-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("map.bin");
+    let mut first = System::new(o.calib, Config::default(), false).unwrap();
+    for f in &frames[..60] {
+        track(&mut first, f);
+    }
+    first.save_map(&path).unwrap();
+    let mut second = System::new(o.calib, Config::default(), false).unwrap();
+    second.load_map(&path).unwrap();
+    assert_eq!(second.trajectory().len(), 60);
+    for (f, e) in frames[60..].iter().zip(&expected[60..]) {
+        let r = track(&mut second, f);
+        assert_eq!(r.state, e.state);
+        assert_eq!(r.keyframe, e.keyframe);
+        let d = (r.world_from_cam.inverse() * e.world_from_cam).log().norm();
+        assert!(d < 1e-9, "frame {}: poses differ by {d}", f.t_ns);
+    }
+    // A truncated file is refused with its name.
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let err = second.load_map(&path).unwrap_err().to_string();
+    assert!(err.contains("map.bin"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn synchronous_mode_is_deterministic() {
+    let o = SyntheticOptions {
+        frames: 60,
+        seed: 5,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let run = || {
+        let mut s = System::new(o.calib, Config::default(), false).unwrap();
+        frames.iter().for_each(|f| {
+            track(&mut s, f);
+        });
+        s.trajectory()
+    };
+    let (a, b) = (run(), run());
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(&b) {
+        assert_eq!(x.1.matrix(), y.1.matrix());
+    }
+}
+
+#[test]
+fn threaded_stress_and_prompt_shutdown() {
+    let o = SyntheticOptions {
+        landmarks: 700,
+        frames: 3000,
+        turns: 3.0,
+        seed: 11,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let mut system = System::new(o.calib, Config::default(), true).unwrap();
+    let mut tracked = 0;
+    for f in &frames[..2500] {
+        let r = track(&mut system, f);
+        assert_ne!(r.state, TrackState::Lost, "frame {} lost", f.t_ns);
+        tracked += 1;
+    }
+    let start = std::time::Instant::now();
+    system.shutdown();
+    eprintln!("shutdown took {:?}", start.elapsed());
+    let traj = system.trajectory();
+    assert_eq!(traj.len(), tracked);
+    assert!(traj.windows(2).all(|w| w[0].0 < w[1].0));
+    assert!(traj.iter().all(|(_, p)| p.matrix().iter().all(|v| v.is_finite())));
+    let truth: Vec<Vector3<f64>> = frames[..tracked]
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    let e = ate(&positions(&traj), &truth);
+    eprintln!("threaded ATE {e:.4} m over {tracked} frames");
+    assert!(e < 0.1, "ATE {e}");
+    // After shutdown, tracking is refused.
+    let f = &frames[2500];
+    let left = FrameFeatures {
+        keypoints: &f.left.keypoints,
+        descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
+    };
+    assert!(system.track(f.t_ns, left, left).is_err());
+}

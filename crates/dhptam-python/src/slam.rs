@@ -1,0 +1,203 @@
+//! `PySystem`: the SLAM back-end. Keypoints ((N, 2) float32) and descriptors ((N, D) float32 or
+//! (N, B) uint8) are read in place; tracking, saving and loading run with the GIL released.
+//! The system sits behind a mutex so that `shutdown` may come from another Python thread while
+//! a `track` call is running (it waits for that frame).
+
+use std::path::PathBuf;
+use std::sync::Mutex;
+
+use dhptam_core::geometry::Se3;
+use dhptam_core::slam::{FrameFeatures, StereoCalibration, System};
+use numpy::ndarray::{Array1, Array3};
+use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+use crate::config::PyConfig;
+use crate::errors::{input_error, IntoPyResult};
+use crate::matching::DescriptorArray;
+
+fn keypoints<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArray2<'py, f32>> {
+    let expected = "a C-contiguous (N, 2) float32 array";
+    let a = obj
+        .extract::<PyReadonlyArray2<'py, f32>>()
+        .map_err(|_| input_error(name, expected, describe(obj)))?;
+    if !a.is_c_contiguous() || a.shape()[1] != 2 {
+        return Err(input_error(name, expected, describe(obj)));
+    }
+    Ok(a)
+}
+
+fn describe(obj: &Bound<'_, PyAny>) -> String {
+    match (obj.getattr("dtype"), obj.getattr("shape")) {
+        (Ok(d), Ok(s)) => format!("dtype {d}, shape {s}"),
+        _ => obj
+            .get_type()
+            .name()
+            .map(|n| n.to_string())
+            .unwrap_or_default(),
+    }
+}
+
+fn pose_array<'py>(py: Python<'py>, pose: &Se3) -> Bound<'py, PyArray2<f64>> {
+    let m = pose.matrix();
+    let rows: Vec<Vec<f64>> = (0..4).map(|r| (0..4).map(|c| m[(r, c)]).collect()).collect();
+    // A 4×4 from fixed-size rows cannot fail.
+    PyArray2::from_vec2(py, &rows).unwrap_or_else(|_| unreachable!())
+}
+
+fn poses_arrays<'py>(
+    py: Python<'py>,
+    poses: &[(i64, Se3)],
+) -> (Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>) {
+    let t: Array1<i64> = poses.iter().map(|p| p.0).collect();
+    let mut out = Array3::<f64>::zeros((poses.len(), 4, 4));
+    for (i, (_, p)) in poses.iter().enumerate() {
+        let m = p.matrix();
+        for r in 0..4 {
+            for c in 0..4 {
+                out[(i, r, c)] = m[(r, c)];
+            }
+        }
+    }
+    (t.into_pyarray(py), out.into_pyarray(py))
+}
+
+/// The SLAM system (see `dhptam.System`).
+#[pyclass(name = "PySystem", module = "dhptam._core", frozen)]
+pub struct PySystem {
+    inner: Mutex<System>,
+}
+
+impl PySystem {
+    fn with<T>(&self, f: impl FnOnce(&mut System) -> T) -> T {
+        let mut guard = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+        f(&mut guard)
+    }
+}
+
+#[pymethods]
+impl PySystem {
+    /// A system for the rectified stereo calibration; `threaded` runs mapping on a thread.
+    #[new]
+    #[pyo3(signature = (fx, fy, cx, cy, baseline_m, width, height, config=None, threaded=true))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        fx: f64,
+        fy: f64,
+        cx: f64,
+        cy: f64,
+        baseline_m: f64,
+        width: u32,
+        height: u32,
+        config: Option<PyRef<'_, PyConfig>>,
+        threaded: bool,
+    ) -> PyResult<Self> {
+        let calib = StereoCalibration::new(fx, fy, cx, cy, baseline_m, width, height).py()?;
+        let config = config.map(|c| c.inner.clone()).unwrap_or_default();
+        Ok(Self {
+            inner: Mutex::new(System::new(calib, config, threaded).py()?),
+        })
+    }
+
+    /// Tracks one frame; returns (pose (4, 4) world_from_cam, state, inliers, keyframe).
+    fn track<'py>(
+        &self,
+        py: Python<'py>,
+        t_ns: i64,
+        left_keypoints: &Bound<'py, PyAny>,
+        left_descriptors: &Bound<'py, PyAny>,
+        right_keypoints: &Bound<'py, PyAny>,
+        right_descriptors: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, &'static str, usize, bool)> {
+        let lk = keypoints(left_keypoints, "left.keypoints")?;
+        let rk = keypoints(right_keypoints, "right.keypoints")?;
+        let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
+        let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
+        let strided = |_| input_error("keypoints", "a C-contiguous array", "a strided view");
+        let left = FrameFeatures {
+            keypoints: lk.as_slice().map_err(strided)?,
+            descriptors: ld.view()?,
+        };
+        let right = FrameFeatures {
+            keypoints: rk.as_slice().map_err(strided)?,
+            descriptors: rd.view()?,
+        };
+        let r = py.detach(|| self.with(|s| s.track(t_ns, left, right))).py()?;
+        Ok((
+            pose_array(py, &r.world_from_cam),
+            r.state.as_str(),
+            r.inliers,
+            r.keyframe,
+        ))
+    }
+
+    /// (t_ns (N,) int64, poses (N, 4, 4) world_from_cam) of every tracked frame.
+    fn trajectory<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> (Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>) {
+        let poses = py.detach(|| self.with(|s| s.trajectory()));
+        poses_arrays(py, &poses)
+    }
+
+    /// The same for the keyframes.
+    fn keyframe_trajectory<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> (Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>) {
+        let poses = py.detach(|| self.with(|s| s.keyframe_trajectory()));
+        poses_arrays(py, &poses)
+    }
+
+    /// Map point positions (N, 3), world frame, metres.
+    fn map_points<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let points = py.detach(|| self.with(|s| s.map_points()));
+        let flat: Vec<f64> = points.iter().flatten().copied().collect();
+        let n = points.len();
+        numpy::ndarray::Array2::from_shape_vec((n, 3), flat)
+            .map(|a| a.into_pyarray(py))
+            .map_err(|e| input_error("map points", "an (N, 3) array", e))
+    }
+
+    /// Loop closures as (query keyframe t_ns, matched keyframe t_ns).
+    fn loop_closures(&self, py: Python<'_>) -> Vec<(i64, i64)> {
+        py.detach(|| self.with(|s| s.loop_closures()))
+    }
+
+    /// Stage → {count, total_s, mean_s, max_s}.
+    fn timing<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let t = self.with(|s| s.timing());
+        let d = PyDict::new(py);
+        for (stage, s) in t {
+            let e = PyDict::new(py);
+            e.set_item("count", s.count)?;
+            e.set_item("total_s", s.total_s)?;
+            e.set_item("mean_s", s.mean_s())?;
+            e.set_item("max_s", s.max_s)?;
+            d.set_item(stage, e)?;
+        }
+        Ok(d)
+    }
+
+    /// Writes the map and tracker state to `path`.
+    fn save_map(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        py.detach(|| self.with(|s| s.save_map(&path))).py()
+    }
+
+    /// Replaces the map and tracker state with those in `path`.
+    fn load_map(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
+        py.detach(|| self.with(|s| s.load_map(&path))).py()
+    }
+
+    /// Stops the worker threads; later `track` calls raise.
+    fn shutdown(&self, py: Python<'_>) {
+        py.detach(|| self.with(|s| s.shutdown()));
+    }
+
+    /// Whether mapping runs on its own thread.
+    #[getter]
+    fn threaded(&self) -> bool {
+        self.with(|s| s.threaded())
+    }
+}

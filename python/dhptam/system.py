@@ -1,0 +1,126 @@
+"""The SLAM back-end: stereo features in, poses and a map out (issue 7, SPEC-NOTES §5).
+
+Input per frame: features of the RECTIFIED left and right images (pinhole, no distortion,
+the right camera at +baseline along the left x axis), as produced by ``dhptam.features``:
+anything with ``.keypoints`` ((N, 2) float32, x = column, y = row) and ``.descriptors``
+((N, D) float32 unit rows or (N, B) uint8) arrays. Both are read in place by the Rust core,
+which tracks with the GIL released; mapping runs on its own thread unless ``threaded=False``
+(then inline and deterministic). Poses are ``world_from_cam`` 4×4 matrices of the rectified
+left camera; the world frame is the first keyframe's camera frame.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import _core
+from ._core import Config
+
+TrackState = Literal["initialised", "ok", "lost", "relocalised"]
+
+
+class FeatureSet(Protocol):
+    """What ``System.track`` reads from each image's features."""
+
+    @property
+    def keypoints(self) -> NDArray[np.float32]: ...
+
+    @property
+    def descriptors(self) -> NDArray[np.float32] | NDArray[np.uint8]: ...
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """Rectified stereo calibration: left intrinsics (pixels), baseline (metres), image size."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    baseline_m: float
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """The result of tracking one frame."""
+
+    t_ns: int
+    pose: NDArray[np.float64]
+    """(4, 4) world_from_cam; for a lost frame the constant-velocity prediction."""
+    state: TrackState
+    inliers: int
+    keyframe: bool
+
+
+class System:
+    """Stereo SLAM over per-frame features; see the module documentation."""
+
+    def __init__(
+        self,
+        calibration: StereoCalibration,
+        config: Config | None = None,
+        threaded: bool = True,
+    ) -> None:
+        c = calibration
+        self.calibration = calibration
+        self._core = _core.PySystem(
+            c.fx, c.fy, c.cx, c.cy, c.baseline_m, c.width, c.height, config, threaded
+        )
+
+    def track(self, t_ns: int, left: FeatureSet, right: FeatureSet) -> TrackResult:
+        """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds."""
+        pose, state, inliers, keyframe = self._core.track(
+            int(t_ns), left.keypoints, left.descriptors, right.keypoints, right.descriptors
+        )
+        return TrackResult(
+            t_ns=int(t_ns),
+            pose=pose,
+            state=state,  # type: ignore[arg-type]
+            inliers=inliers,
+            keyframe=keyframe,
+        )
+
+    def trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """(t_ns (N,), poses (N, 4, 4)) of every tracked frame, with the latest corrections."""
+        return self._core.trajectory()
+
+    def keyframe_trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """(t_ns (K,), poses (K, 4, 4)) of the keyframes."""
+        return self._core.keyframe_trajectory()
+
+    def map_points(self) -> NDArray[np.float64]:
+        """(N, 3) map point positions, world frame, metres."""
+        return self._core.map_points()
+
+    def loop_closures(self) -> list[tuple[int, int]]:
+        """Accepted loops as (query keyframe t_ns, matched keyframe t_ns)."""
+        return self._core.loop_closures()
+
+    def timing(self) -> dict[str, dict[str, float]]:
+        """Per stage: count, total_s, mean_s, max_s of wall time."""
+        return self._core.timing()
+
+    def save_map(self, path: str | os.PathLike[str]) -> None:
+        """Writes the map and the tracker state (binary, atomically)."""
+        self._core.save_map(path)
+
+    def load_map(self, path: str | os.PathLike[str]) -> None:
+        """Replaces the map and tracker state with a saved one (same calibration)."""
+        self._core.load_map(path)
+
+    def shutdown(self) -> None:
+        """Stops mapping (queued keyframes are dropped); later ``track`` calls raise."""
+        self._core.shutdown()
+
+    def __enter__(self) -> System:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
