@@ -10,7 +10,7 @@ import pytest
 
 from dhptam import SE3, SO3
 from dhptam.cli import main
-from dhptam.errors import ConfigError, FileError, InputError, ParseError
+from dhptam.errors import ConfigError, FileError, InputError, NumericalError, ParseError
 from dhptam.eval import Trajectory, coverage, evaluate, load_trajectory, read_suite, run_suite
 from dhptam.trajectory import read_tum, rows_to_matrices, write_tum
 
@@ -153,6 +153,10 @@ def test_too_few_matched_poses_is_an_error() -> None:
         evaluate(late, ref)
     with pytest.raises(InputError, match="align"):
         evaluate(ref, ref, align="se2")
+    line = ref.rows.copy()
+    line[:, 1:3] = 0.0  # every position on the x axis: no rotation can be determined
+    with pytest.raises(NumericalError, match="Umeyama se3 alignment failed"):
+        evaluate(Trajectory(ref.t_ns, line, "line.tum"), Trajectory(ref.t_ns, line))
 
 
 def test_cli_eval_writes_json_and_plots(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -203,3 +203,14 @@ def test_hdr_beta_switches_to_dvs_in_dark_and_bright_segments_and_fusion_adds_fe
             assert f.beta_left <= 0.5
             checked["after"] += 1
     assert checked["dark"] >= 3 and checked["bright"] >= 2 and checked["after"] >= 2, checked
+
+
+def test_auto_plane_depth_is_the_median_scene_depth(sequence) -> None:  # type: ignore[no-untyped-def]
+    fe = Frontend(sequence, "fusion", plane_depth="auto", prefetch=0)
+    sim = simulator_like("tiny")
+    truth = float(np.nanmedian(sim.render_depth(0, int(sequence.frames.t_mid_ns[0]))))
+    assert fe.plane_depth_m == pytest.approx(truth, rel=0.15), (fe.plane_depth_m, truth)
+    assert Frontend(sequence, "fusion", plane_depth=1.5).plane_depth_m == 1.5
+    assert Frontend(sequence, "fusion").plane_depth_m == 0.0  # the config's default: infinity
+    with pytest.raises(InputError, match="plane_depth"):
+        Frontend(sequence, "fusion", plane_depth="near")

@@ -16,7 +16,8 @@ Modes: ``fusion`` (the above), ``frames`` (rectified frames only; no event is re
 ``events`` (the warped E3CT intensity alone, β = 1).
 
 Depth of the warp plane: ``[fusion] plane_depth_m`` (default 0 = infinity, a rotation-only
-homography). Infinity is the default because nothing about the scene is known before tracking
+homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM on the first
+well-exposed frame pair. Infinity is the default because nothing about the scene is known before tracking
 starts, and it is exact for distant scenes; its error for a point at depth z is
 ``f · b / z`` pixels with ``b`` the event-to-frame camera offset (a few cm on TUM-VIE-like
 rigs). The caller can set :attr:`Frontend.plane_depth_m` at any time, e.g. to the median depth
@@ -142,6 +143,10 @@ class Frontend:
         Optional ``f(rectified_frame) -> int`` giving the feature yield of a frame, fed to β
         (fewer than ``[fusion] min_features`` switches to the DVS bias). Without it β uses the
         exposure statistics only.
+    plane_depth
+        Depth in metres of the warp plane, ``"auto"`` for the median scene depth measured by
+        StereoSGBM on the first well-exposed frame pair of the range (see
+        :meth:`median_scene_depth`), or ``None`` for ``[fusion] plane_depth_m`` (0: infinity).
     start, stop
         Frame index range ``[start, stop)`` to iterate (default: all).
     """
@@ -154,6 +159,7 @@ class Frontend:
         prefetch: int = 2,
         *,
         feature_counter: Callable[[_U8], int] | None = None,
+        plane_depth: float | str | None = None,
         start: int = 0,
         stop: int | None = None,
     ) -> None:
@@ -213,6 +219,17 @@ class Frontend:
                 @ SE3(self._rect_rotation(self.event_rect, side)).inverse()
                 for side in ("left", "right")
             }
+        if plane_depth == "auto":
+            if mode != "frames":
+                self.plane_depth_m = self.median_scene_depth()
+        elif plane_depth is not None:
+            if isinstance(plane_depth, str) or not float(plane_depth) >= 0.0:
+                raise InputError(
+                    'plane_depth must be a depth in metres (>= 0, 0: infinity), "auto" or None, '
+                    f"got {plane_depth!r}",
+                    field="plane_depth",
+                )
+            self.plane_depth_m = float(plane_depth)
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._queue: queue.Queue[Any] | None = None
@@ -242,6 +259,23 @@ class Frontend:
         """Rectified left frame camera ← left frame camera (a pure rotation). A trajectory of
         the rectified camera maps back with ``world_from_cam = world_from_rect @ rect_from_cam``."""
         return SE3(self.frame_rect.rect_left_from_left)
+
+    def median_scene_depth(self, max_tries: int = 10) -> float:
+        """Median depth (m) of the scene seen by the rectified left frame camera: StereoSGBM on
+        the first APS-biased (well-exposed) frame pair among the first ``max_tries`` of the
+        range; 0 (infinity) when none has enough valid disparities."""
+        from .depth import sgbm
+
+        for k in range(self.start, min(self.stop, self.start + max_tries)):
+            pair = self.sequence.frames[k]
+            left, right = self._rectify_frame(pair.left, "left"), self._rectify_frame(pair.right, "right")
+            if choose_beta(left, None, self.config).bias != "aps":
+                continue
+            inverse = sgbm(left, right, self.calibration)
+            valid = inverse[np.isfinite(inverse)]
+            if valid.size > 0.1 * inverse.size:
+                return float(1.0 / np.median(valid))
+        return 0.0
 
     def camera_poses(self, world_from_rect: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """``world_from_cam`` (N, 4, 4) of the left frame camera from the tracker's

@@ -6,7 +6,8 @@ Example: an exact copy of a trajectory has zero ATE and full coverage::
     >>> import numpy as np
     >>> from dhptam.eval import Trajectory, evaluate
     >>> t = np.arange(10, dtype=np.int64) * 100_000_000
-    >>> rows = np.zeros((10, 7)); rows[:, 0] = np.arange(10) * 0.1; rows[:, 6] = 1.0
+    >>> rows = np.zeros((10, 7)); rows[:, 6] = 1.0
+    >>> rows[:, 0], rows[:, 1] = np.cos(np.arange(10)), np.sin(np.arange(10))
     >>> ref = Trajectory(t, rows)
     >>> r = evaluate(Trajectory(t, rows.copy()), ref)
     >>> round(r.ate_rmse_m, 9), r.coverage

@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .._core import SE3
-from ..errors import InputError
+from ..errors import InputError, NumericalError
 from ..trajectory import poses_to_rows, read_tum
 
 _NS = 1_000_000_000
@@ -236,7 +236,16 @@ def evaluate(
     t = estimate.t_ns[ok]
     ref = _evo_trajectory(t, ref_rows[ok])
     est = _evo_trajectory(t, estimate.rows[ok])
-    rotation, translation, scale = est.align(ref, correct_scale=align == "sim3")
+    from evo.core.geometry import GeometryException
+
+    try:
+        rotation, translation, scale = est.align(ref, correct_scale=align == "sim3")
+    except GeometryException as err:
+        raise NumericalError(
+            f"{estimate.source or 'estimate'}: Umeyama {align} alignment failed ({err}); the matched "
+            "reference positions must not all lie on one line or point",
+            field="estimate",
+        ) from None
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     ape_stats = {k: float(v) for k, v in ape.get_all_statistics().items()}
