@@ -1,0 +1,441 @@
+"""``dhptam run``: a sequence through the whole system, with every output written safely.
+
+The work is a three-stage pipeline, so that on a multi-core machine no stage waits for the
+others:
+
+1. the front-end (:class:`dhptam.frontend.Frontend`: event windows, E3CT, warp, β fusion) runs
+   on its own prefetch thread;
+2. feature extraction (torch or OpenCV, both release the GIL) runs on a second thread, one frame
+   behind the front-end;
+3. tracking runs on the calling thread, while the back-end's mapping and loop-closing threads
+   run inside the Rust core.
+
+Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
+seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inliers, β, fusion
+bias, stage times), ``timing.json`` (per stage statistics), ``config.toml`` (resolved) and
+``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
+a file; Ctrl-C or a failure mid-run still writes everything done so far.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import _core
+from .errors import InputError
+
+log = logging.getLogger(__name__)
+
+FORMATS = ("tum-vie",)
+MODES = ("fusion", "frames", "events")
+FEATURES = ("orb", "sift", "r2d2", "superpoint")
+STAGES = ("frontend", "extraction", "tracking")
+_NS = 1_000_000_000
+
+
+@dataclass
+class RunResult:
+    """What :func:`run` did; the files in ``out`` hold the details."""
+
+    out: Path
+    mode: str
+    features: str
+    frames: int
+    states: dict[str, int]
+    keyframes: int
+    map_points: int
+    loop_closures: int
+    seconds: float
+    interrupted: bool = False
+    error: str | None = None
+    files: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def tracked(self) -> int:
+        """Frames whose pose came from tracking (not lost)."""
+        return sum(n for s, n in self.states.items() if s != "lost")
+
+    @property
+    def fps(self) -> float:
+        """Frames per second over the whole run."""
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+
+class _Stop:
+    """End of a stage's stream."""
+
+
+class _Failure:
+    def __init__(self, error: BaseException) -> None:
+        self.error = error
+
+
+def _stage(source: Iterator[Any], work: Callable[[Any], Any], name: str, depth: int) -> Iterator[Any]:
+    """Runs ``work`` over ``source`` on a thread of its own, up to ``depth`` items ahead of the
+    consumer. Errors are re-raised in the consumer; closing the generator (or an exception in
+    the consumer) stops the thread and closes ``source`` in turn."""
+    q: queue.Queue[Any] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def put(item: Any) -> bool:
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.05)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def produce() -> None:
+        try:
+            for item in source:
+                if stop.is_set() or not put(work(item)):
+                    return
+            put(_Stop())
+        except BaseException as error:  # handed to the consumer
+            put(_Failure(error))
+
+    thread = threading.Thread(target=produce, name=f"dhptam-{name}", daemon=True)
+    thread.start()
+    try:
+        while True:
+            try:
+                item = q.get(timeout=0.1)
+            except queue.Empty:
+                if not thread.is_alive() and q.empty():
+                    return
+                continue
+            if isinstance(item, _Stop):
+                return
+            if isinstance(item, _Failure):
+                raise item.error
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=30)
+        close = getattr(source, "close", None)
+        if close is not None and not thread.is_alive():
+            close()
+
+
+def _stats(values: list[float]) -> dict[str, float]:
+    if not values:
+        return {"count": 0}
+    a = np.asarray(values) * 1e3
+    return {
+        "count": len(values),
+        "mean_ms": float(a.mean()),
+        "median_ms": float(np.median(a)),
+        "p95_ms": float(np.percentile(a, 95)),
+        "max_ms": float(a.max()),
+        "total_s": float(a.sum() / 1e3),
+    }
+
+
+def _resolve_config(config: str | Path | _core.Config | None) -> _core.Config:
+    if config is None:
+        return _core.Config()
+    if isinstance(config, _core.Config):
+        return config
+    return _core.Config.from_file(Path(config))
+
+
+def _load_sequence(sequence: str | Path, fmt: str, calibration: str | Path | None) -> Any:
+    if fmt not in FORMATS:
+        raise InputError(
+            f"unknown sequence format {fmt!r}; choose one of {', '.join(FORMATS)}", field="format"
+        )
+    from .datasets import load_tumvie
+
+    return load_tumvie(sequence, calibration=calibration)
+
+
+def _progress(total: int, enabled: bool, desc: str) -> Any:
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", dynamic_ncols=True, leave=True)
+
+
+class _Outputs:
+    """Collects per-frame records and writes every output file atomically."""
+
+    def __init__(self, out: Path, rect_from_cam: Any) -> None:
+        self.out = out
+        self.rect_from_cam = rect_from_cam
+        self.rows: list[dict[str, Any]] = []
+        self.times: dict[str, list[float]] = {s: [] for s in STAGES}
+
+    def record(self, row: dict[str, Any]) -> None:
+        self.rows.append(row)
+        for s in STAGES:
+            self.times[s].append(row[f"{s}_s"])
+
+    def write(self, system: Any, config_toml: str, meta: dict[str, Any]) -> dict[str, Path]:
+        from .depth import write_ply
+        from .trajectory import atomic_write_text, write_tum
+
+        files: dict[str, Path] = {}
+        t_ns, poses = system.trajectory()
+        path = self.out / "trajectory.tum"
+        write_tum(
+            path,
+            t_ns,
+            poses,
+            header="timestamp[s] tx ty tz qx qy qz qw (world_from_cam, left rectified frame camera)",
+        )
+        files["trajectory"] = path
+        # The same poses for the unrectified left frame camera, which ground truth describes.
+        frame_cam = poses @ self.rect_from_cam.matrix() if len(poses) else poses
+        path = self.out / "trajectory_frame_left.tum"
+        write_tum(
+            path,
+            t_ns,
+            frame_cam,
+            header="timestamp[s] tx ty tz qx qy qz qw (world_from_cam, left frame camera)",
+        )
+        files["trajectory_frame_left"] = path
+        kt, kposes = system.keyframe_trajectory()
+        path = self.out / "keyframes.tum"
+        write_tum(
+            path,
+            kt,
+            kposes,
+            header="timestamp[s] tx ty tz qx qy qz qw (keyframes, left rectified frame camera)",
+        )
+        files["keyframes"] = path
+        path = self.out / "map.ply"
+        write_ply(str(path), system.map_points())
+        files["map"] = path
+        header = list(self.rows[0]) if self.rows else ["index"]
+        lines = [",".join(header)] + [",".join(str(r[h]) for h in header) for r in self.rows]
+        path = self.out / "frames.csv"
+        atomic_write_text(path, "\n".join(lines) + "\n")
+        files["frames"] = path
+        timing = {
+            "stages": {s: _stats(v) for s, v in self.times.items()},
+            "backend": system.timing(),
+            **meta,
+        }
+        path = self.out / "timing.json"
+        atomic_write_text(path, json.dumps(timing, indent=2, sort_keys=True) + "\n")
+        files["timing"] = path
+        path = self.out / "config.toml"
+        atomic_write_text(path, config_toml)
+        files["config"] = path
+        return files
+
+
+def run(
+    sequence: str | Path,
+    out: str | Path,
+    *,
+    fmt: str = "tum-vie",
+    calibration: str | Path | None = None,
+    mode: str = "fusion",
+    features: str = "orb",
+    weights: str | Path | None = None,
+    config: str | Path | _core.Config | None = None,
+    realtime: bool = False,
+    progress: bool = True,
+    max_frames: int | None = None,
+    threaded: bool = True,
+) -> RunResult:
+    """Runs dhptam on a sequence and writes the outputs into ``out`` (see the module docstring).
+
+    Parameters
+    ----------
+    sequence
+        The sequence folder (TUM-VIE layout, real or simulated).
+    out
+        Output folder; created if needed, files in it are replaced.
+    fmt
+        Sequence format: ``tum-vie``.
+    calibration
+        A calibration file overriding the one found beside the sequence.
+    mode
+        ``fusion`` (frames and events blended by the online β), ``frames`` or ``events``.
+    features
+        ``orb``, ``sift`` (no weights needed), ``r2d2`` or ``superpoint``.
+    weights
+        Weight file for the learned extractors (see ``dhptam.features`` for the search order).
+    config
+        A configuration file or :class:`dhptam.Config`; defaults otherwise.
+    realtime
+        Feed frames no faster than the sensor produced them.
+    progress
+        Show a progress bar on stderr.
+    max_frames
+        Stop after this many frames.
+    threaded
+        Run mapping and loop closing on their own threads (``False``: inline, deterministic).
+
+    Returns
+    -------
+    RunResult
+        Counts, timing and the files written. A Ctrl-C stops the run cleanly
+        (``interrupted``); any other failure is raised after everything done so far is written.
+    """
+    from .features import load as load_features
+    from .frontend import Frontend
+    from .system import StereoCalibration, System
+
+    if mode not in MODES:
+        raise InputError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}", field="mode")
+    if features not in FEATURES:
+        raise InputError(
+            f"unknown features {features!r}; choose one of {', '.join(FEATURES)}", field="features"
+        )
+    out_dir = Path(out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    handler = logging.FileHandler(out_dir / "run.log", mode="w", encoding="utf-8")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger("dhptam")
+    root.addHandler(handler)
+    rust = logging.getLogger("dhptam_core")
+    rust.addHandler(handler)
+    started = time.perf_counter()
+    try:
+        cfg = _resolve_config(config)
+        seq = _load_sequence(sequence, fmt, calibration)
+        extractor = load_features(features, weights=weights)
+        stop_at = None if max_frames is None else int(max_frames)
+        frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
+        system = System(StereoCalibration(*frontend.calibration), frontend.config, threaded=threaded)
+        outputs = _Outputs(out_dir, frontend.rect_from_cam)
+        log.info(
+            "run: %s, %d frames, mode %s, features %s, out %s",
+            sequence,
+            len(frontend),
+            mode,
+            features,
+            out_dir,
+        )
+        result = RunResult(out_dir, mode, features, 0, {}, 0, 0, 0, 0.0)
+        states: Counter[str] = Counter()
+        try:
+            _track_all(frontend, extractor, system, outputs, states, realtime, progress)
+        except KeyboardInterrupt:
+            result.interrupted = True
+            log.warning("interrupted by the user after %d frames; writing what was done", len(outputs.rows))
+        except BaseException as error:
+            result.error = f"{type(error).__name__}: {error}"
+            log.error("run failed after %d frames: %s", len(outputs.rows), result.error)
+            _finish(system, outputs, frontend, result, states, started, features)
+            raise
+        _finish(system, outputs, frontend, result, states, started, features)
+        log.info(
+            "done: %d frames in %.1f s (%.1f fps), states %s, %d keyframes, %d map points, %d loops",
+            result.frames, result.seconds, result.fps, dict(states), result.keyframes, result.map_points,
+            result.loop_closures,
+        )  # fmt: skip
+        return result
+    finally:
+        root.removeHandler(handler)
+        rust.removeHandler(handler)
+        handler.close()
+
+
+def _finish(
+    system: Any,
+    outputs: _Outputs,
+    frontend: Any,
+    result: RunResult,
+    states: Counter[str],
+    started: float,
+    features: str,
+) -> None:
+    system.shutdown()
+    frontend.close()
+    result.frames = len(outputs.rows)
+    result.states = dict(states)
+    result.seconds = time.perf_counter() - started
+    kt, _ = system.keyframe_trajectory()
+    result.keyframes = len(kt)
+    result.map_points = len(system.map_points())
+    result.loop_closures = len(system.loop_closures())
+    meta = {
+        "frames": result.frames,
+        "seconds": result.seconds,
+        "fps": result.fps,
+        "mode": result.mode,
+        "features": features,
+        "states": result.states,
+        "interrupted": result.interrupted,
+        "error": result.error,
+    }
+    result.files = outputs.write(system, frontend.config.to_toml(), meta)
+
+
+def _track_all(
+    frontend: Any,
+    extractor: Any,
+    system: Any,
+    outputs: _Outputs,
+    states: Counter[str],
+    realtime: bool,
+    progress: bool,
+) -> None:
+    def front(index: int) -> tuple[Any, float]:
+        t0 = time.perf_counter()
+        frame = frontend.process(index)
+        return frame, time.perf_counter() - t0
+
+    def extract(item: tuple[Any, float]) -> tuple[Any, float, Any, Any, float]:
+        frame, t_front = item
+        t0 = time.perf_counter()
+        left, right = extractor.extract(frame.left, frame.right)
+        return frame, t_front, left, right, time.perf_counter() - t0
+
+    indices = iter(range(frontend.start, frontend.stop))
+    fused = _stage(indices, front, "frontend", 2)
+    extracted = _stage(fused, extract, "extraction", 2)
+    bar = _progress(frontend.stop - frontend.start, progress, f"dhptam {frontend.mode}")
+    wall0 = time.perf_counter()
+    t_first: int | None = None
+    try:
+        for frame, t_front, left, right, t_extract in extracted:
+            if realtime:
+                t_first = frame.t_ns if t_first is None else t_first
+                wait = (frame.t_ns - t_first) / _NS - (time.perf_counter() - wall0)
+                if wait > 0:
+                    time.sleep(wait)
+            t0 = time.perf_counter()
+            r = system.track(frame.t_ns, left, right)
+            t_track = time.perf_counter() - t0
+            states[r.state] += 1
+            outputs.record(
+                {
+                    "index": frame.index,
+                    "t_s": f"{frame.t_ns / _NS:.9f}",
+                    "state": r.state,
+                    "inliers": r.inliers,
+                    "keyframe": int(r.keyframe),
+                    "keypoints_left": len(left.keypoints),
+                    "keypoints_right": len(right.keypoints),
+                    "beta_left": f"{frame.beta_left:.4f}",
+                    "bias": frame.bias,
+                    "frontend_s": round(t_front, 6),
+                    "extraction_s": round(t_extract, 6),
+                    "tracking_s": round(t_track, 6),
+                }
+            )
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix_str(f"{r.state} {r.inliers} inl", refresh=False)
+    finally:
+        extracted.close()
+        if bar is not None:
+            bar.close()
