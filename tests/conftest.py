@@ -57,3 +57,12 @@ def sim_small_desk(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from dhptam.sim import simulate
 
     return simulate(tmp_path_factory.mktemp("sim"), preset="desk", duration_s=0.5, seed=0).path
+
+
+@pytest.fixture(scope="session")
+def sim_desk_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """1.2 s of the ``desk`` preset (normal lighting), long enough for the end-to-end run tests;
+    simulated once per session."""
+    from dhptam.sim import simulate
+
+    return simulate(tmp_path_factory.mktemp("sim"), preset="desk", duration_s=1.2, seed=1).path

@@ -26,6 +26,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -141,6 +142,52 @@ def _stats(values: list[float]) -> dict[str, float]:
         "max_ms": float(a.max()),
         "total_s": float(a.sum() / 1e3),
     }
+
+
+class _Forward(logging.Handler):
+    """Hands records on to the root logger's handlers (what propagation would have done)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        logging.getLogger().handle(record)
+
+
+@contextmanager
+def _run_log(path: Path) -> Iterator[None]:
+    """Writes the dhptam loggers' records of level INFO and above (lower if configured) to
+    ``path`` while leaving what reaches the console exactly as configured."""
+    from .logs import LOGGER_NAMES
+
+    handler = logging.FileHandler(path, mode="w", encoding="utf-8")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    saved: list[tuple[logging.Logger, int, bool, list[tuple[logging.Handler, int]]]] = []
+    forwarders: list[tuple[logging.Logger, logging.Handler]] = []
+    for name in LOGGER_NAMES:
+        logger = logging.getLogger(name)
+        effective = logger.getEffectiveLevel()
+        saved.append((logger, logger.level, logger.propagate, [(h, h.level) for h in logger.handlers]))
+        for h in logger.handlers:
+            h.setLevel(max(h.level, effective))
+        if logger.propagate:
+            forward = _Forward(effective)
+            logger.addHandler(forward)
+            forwarders.append((logger, forward))
+            logger.propagate = False
+        logger.setLevel(min(effective, logging.INFO))
+        logger.addHandler(handler)
+    _core._reset_log_cache()
+    try:
+        yield
+    finally:
+        for logger, level, propagate, handlers in saved:
+            logger.removeHandler(handler)
+            logger.setLevel(level)
+            logger.propagate = propagate
+            for h, h_level in handlers:
+                h.setLevel(h_level)
+        for logger, forward in forwarders:
+            logger.removeHandler(forward)
+        _core._reset_log_cache()
+        handler.close()
 
 
 def _resolve_config(config: str | Path | _core.Config | None) -> _core.Config:
@@ -300,16 +347,10 @@ def run(
         )
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    handler = logging.FileHandler(out_dir / "run.log", mode="w", encoding="utf-8")
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
-    root = logging.getLogger("dhptam")
-    root.addHandler(handler)
-    rust = logging.getLogger("dhptam_core")
-    rust.addHandler(handler)
     started = time.perf_counter()
-    try:
+    with _run_log(out_dir / "run.log"), ExitStack() as resources:
         cfg = _resolve_config(config)
-        seq = _load_sequence(sequence, fmt, calibration)
+        seq = resources.enter_context(_load_sequence(sequence, fmt, calibration))
         extractor = load_features(features, weights=weights)
         stop_at = None if max_frames is None else int(max_frames)
         frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
@@ -342,10 +383,6 @@ def run(
             result.loop_closures,
         )  # fmt: skip
         return result
-    finally:
-        root.removeHandler(handler)
-        rust.removeHandler(handler)
-        handler.close()
 
 
 def _finish(

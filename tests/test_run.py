@@ -1,0 +1,131 @@
+"""End to end: ``dhptam run`` / ``dhptam.run.run`` and ``dhptam demo`` on simulated sequences."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import dhptam.features
+from dhptam import _core
+from dhptam.cli import main
+from dhptam.eval import evaluate, load_trajectory
+from dhptam.run import run
+from dhptam.trajectory import read_tum
+
+GROUND_TRUTH = "groundtruth_frame_left.txt"
+
+
+def _ate(out: Path, sequence: Path) -> Any:
+    return evaluate(
+        load_trajectory(out / "trajectory_frame_left.tum"), load_trajectory(sequence / GROUND_TRUTH)
+    )
+
+
+@pytest.mark.parametrize("mode", ["fusion", "frames"])
+def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: Path, tmp_path: Path) -> None:
+    result = run(sim_desk_run, tmp_path, mode=mode, features="orb", progress=False, threaded=False)
+    frames = len(read_tum(tmp_path / "trajectory.tum")[0])
+    assert result.frames == 24
+    assert result.states.get("lost", 0) == 0
+    assert frames == result.frames
+    ev = _ate(tmp_path, sim_desk_run)
+    # Measured on this sequence (seed 1, ORB, synchronous): ATE 0.3-0.9 % of the path. The bound
+    # leaves a margin; a broken tracker is off by tens of percent.
+    assert ev.ate_percent_of_path < 2.0, ev.to_dict()
+    assert ev.coverage > 0.9
+    # Every promised file is there and readable.
+    for name in ("keyframes.tum", "map.ply", "frames.csv", "timing.json", "config.toml", "run.log"):
+        assert (tmp_path / name).is_file(), name
+    timing = json.loads((tmp_path / "timing.json").read_text())
+    assert set(timing["stages"]) == {"frontend", "extraction", "tracking"}
+    assert timing["stages"]["tracking"]["count"] == 24
+    config = _core.Config.from_file(tmp_path / "config.toml").to_dict()
+    assert config["fusion"]["mode"] == mode
+    header = (tmp_path / "map.ply").read_bytes()[:200]
+    assert header.startswith(b"ply") and f"element vertex {result.map_points}".encode() in header
+    assert "done: 24 frames" in (tmp_path / "run.log").read_text()
+
+
+class _FailingExtractor:
+    """Wraps an extractor and raises ``error`` on call number ``at``."""
+
+    def __init__(self, inner: Any, at: int, error: BaseException) -> None:
+        self.inner, self.at, self.error, self.calls = inner, at, error, 0
+
+    def extract(self, left: Any, right: Any) -> Any:
+        self.calls += 1
+        if self.calls == self.at:
+            raise self.error
+        return self.inner.extract(left, right)
+
+
+def _patch_extractor(monkeypatch: pytest.MonkeyPatch, at: int, error: BaseException) -> None:
+    load = dhptam.features.load
+    monkeypatch.setattr(dhptam.features, "load", lambda *a, **k: _FailingExtractor(load(*a, **k), at, error))
+
+
+def test_ctrl_c_stops_cleanly_and_keeps_what_was_done(
+    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _patch_extractor(monkeypatch, 11, KeyboardInterrupt())
+    result = run(sim_desk_run, tmp_path, features="orb", progress=False)
+    assert result.interrupted
+    assert result.frames == 10
+    t_ns, _ = read_tum(tmp_path / "trajectory.tum")
+    assert len(t_ns) == 10
+    assert json.loads((tmp_path / "timing.json").read_text())["interrupted"] is True
+
+
+def test_a_failure_mid_run_still_writes_the_trajectory_so_far(
+    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _patch_extractor(monkeypatch, 8, RuntimeError("camera unplugged"))
+    with pytest.raises(RuntimeError, match="camera unplugged"):
+        run(sim_desk_run, tmp_path, features="orb", progress=False)
+    assert len(read_tum(tmp_path / "trajectory.tum")[0]) == 7
+    timing = json.loads((tmp_path / "timing.json").read_text())
+    assert "camera unplugged" in timing["error"]
+    assert not list(tmp_path.glob(".*.tmp")), "temporary files left behind"
+
+
+def test_cli_run_and_its_input_errors(
+    sim_desk_run: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "cli"
+    code = main(
+        ["run", "--sequence", str(sim_desk_run), "--out", str(out), "--max-frames", "6", "-q", "--sync"]
+    )
+    assert code == 0
+    assert "6 frames" in capsys.readouterr().out
+    assert len(read_tum(out / "trajectory.tum")[0]) == 6
+    assert main(["run", "--sequence", str(tmp_path / "missing"), "--out", str(out), "-q"]) == 2
+    assert "sequence folder not found" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", "--sequence", str(sim_desk_run), "--out", str(out), "--mode", "dreams"])
+    assert exit_info.value.code == 2
+
+
+def test_demo_writes_the_table_and_the_report(
+    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # The demo reuses a cached sequence: point its cache at the session's simulated one.
+    cache = tmp_path / "cache"
+    (cache / "sequences" / "seed1").mkdir(parents=True)
+    os.symlink(sim_desk_run, cache / "sequences" / "seed1" / "desk")
+    monkeypatch.setenv("DHPTAM_CACHE_DIR", str(cache))
+    from dhptam.demo import demo
+
+    rows = demo(tmp_path / "demo", preset="desk", seed=1, modes=("fusion", "frames"), progress=False)
+    assert [r.mode for r in rows] == ["fusion", "frames"]
+    assert all(r.evaluation is not None and r.evaluation.ate_percent_of_path < 2.0 for r in rows)
+    report = (tmp_path / "demo" / "report.md").read_text()
+    assert "| fusion | 24 |" in report and "| frames | 24 |" in report
+    png = (tmp_path / "demo" / "overview.png").read_bytes()
+    assert png.startswith(b"\x89PNG")
+    assert "report:" in capsys.readouterr().out
+    assert np.isfinite(rows[0].evaluation.ate_rmse_m)
