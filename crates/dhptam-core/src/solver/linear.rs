@@ -210,7 +210,11 @@ impl BlockCholesky {
             csc.as_ref(),
             Side::Upper,
             SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(&fwd, &inv, dim)),
-            CholeskySymbolicParams::default(),
+            CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold:
+                    faer::sparse::linalg::SupernodalThreshold::FORCE_SUPERNODAL,
+                ..Default::default()
+            },
         )
         .map_err(|e| Error::numerical("sparse Cholesky analysis", format!("{e:?}")))?;
         let scratch = symbolic
