@@ -4,8 +4,8 @@
 //! Values live block by block (upper triangle, each block b×b column-major) so assembly can
 //! add whole blocks; a solve scatters them either into a dense matrix (faer's blocked dense
 //! Cholesky, for small systems) or into a compressed-column upper triangle whose symbolic
-//! Cholesky factorisation (AMD ordering, supernodal or simplicial as faer decides) is computed
-//! once per pattern and reused by every numeric factorisation.
+//! Cholesky factorisation (block AMD ordering, supernodal: the dense blocks make the supernodes)
+//! is computed once per pattern and reused by every numeric factorisation.
 
 use std::collections::HashMap;
 
@@ -210,7 +210,11 @@ impl BlockCholesky {
             csc.as_ref(),
             Side::Upper,
             SymmetricOrdering::Custom(faer::perm::PermRef::new_checked(&fwd, &inv, dim)),
-            CholeskySymbolicParams::default(),
+            CholeskySymbolicParams {
+                supernodal_flop_ratio_threshold:
+                    faer::sparse::linalg::SupernodalThreshold::FORCE_SUPERNODAL,
+                ..Default::default()
+            },
         )
         .map_err(|e| Error::numerical("sparse Cholesky analysis", format!("{e:?}")))?;
         let scratch = symbolic

@@ -17,7 +17,6 @@ use nalgebra::{Matrix6, SMatrix, Vector2, Vector3, Vector6};
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
 use super::robust::{Corrector, Loss};
 use crate::error::{Error, Result};
-use crate::geometry::so3::hat;
 use crate::geometry::Se3;
 
 /// Rectified stereo (or monocular, ignoring `baseline`) pinhole intrinsics.
@@ -114,49 +113,87 @@ pub fn pose_residual(
 /// The pose as (R, t): a matrix product per point instead of a quaternion rotation.
 type RigidMatrix = (nalgebra::Matrix3<f64>, Vector3<f64>);
 
-fn residual(
-    k: &StereoIntrinsics,
-    (rotation, translation): &RigidMatrix,
-    obs: &PoseObservation,
-    min_depth: f64,
-) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
-    let (point, pixel, u_right) = match *obs {
+/// The observation's point, measured pixel and optional right column.
+#[inline]
+fn parts(obs: &PoseObservation) -> (&Vector3<f64>, &Vector2<f64>, Option<f64>) {
+    match obs {
         PoseObservation::Mono { point, pixel } => (point, pixel, None),
         PoseObservation::Stereo {
             point,
             pixel,
             u_right,
-        } => (point, pixel, Some(u_right)),
-    };
+        } => (point, pixel, Some(*u_right)),
+    }
+}
+
+/// The residual alone, for cost evaluations; `None` behind `min_depth`.
+#[inline]
+fn residual_value(
+    k: &StereoIntrinsics,
+    (rotation, translation): &RigidMatrix,
+    obs: &PoseObservation,
+    min_depth: f64,
+) -> Option<Vector3<f64>> {
+    let (point, pixel, u_right) = parts(obs);
     let p = rotation * point + translation;
     // NaN depths fail this test too.
     if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     let iz = 1.0 / p.z;
-    let mut dp = SMatrix::<f64, 3, 6>::zeros();
-    dp.fixed_view_mut::<3, 3>(0, 0)
-        .copy_from(&nalgebra::Matrix3::identity());
-    dp.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-hat(&p)));
-    let mut proj = SMatrix::<f64, 3, 3>::zeros();
-    proj[(0, 0)] = k.fx * iz;
-    proj[(0, 2)] = -k.fx * p.x * iz * iz;
-    proj[(1, 1)] = k.fy * iz;
-    proj[(1, 2)] = -k.fy * p.y * iz * iz;
-    let mut r = Vector3::new(
+    Some(Vector3::new(
         k.fx * p.x * iz + k.cx - pixel.x,
         k.fy * p.y * iz + k.cy - pixel.y,
-        0.0,
-    );
+        u_right.map_or(0.0, |ur| k.fx * (p.x - k.baseline) * iz + k.cx - ur),
+    ))
+}
+
+/// The residual with its Jacobian ∂r/∂[ρ, φ] = ∂π/∂P · [I | −[P]×], written out entry by
+/// entry (the product has many structural zeros).
+#[inline]
+fn residual(
+    k: &StereoIntrinsics,
+    (rotation, translation): &RigidMatrix,
+    obs: &PoseObservation,
+    min_depth: f64,
+) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
+    let (point, pixel, u_right) = parts(obs);
+    let p = rotation * point + translation;
+    if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    let (x, y) = (p.x, p.y);
+    let iz = 1.0 / p.z;
+    let (xz, yz) = (x * iz, y * iz);
+    let (fxz, fyz) = (k.fx * iz, k.fy * iz);
+    let mut j = SMatrix::<f64, 3, 6>::zeros();
+    // u = fx x/z + cx
+    j[(0, 0)] = fxz;
+    j[(0, 2)] = -fxz * xz;
+    j[(0, 3)] = -k.fx * xz * yz;
+    j[(0, 4)] = k.fx * (1.0 + xz * xz);
+    j[(0, 5)] = -k.fx * yz;
+    // v = fy y/z + cy
+    j[(1, 1)] = fyz;
+    j[(1, 2)] = -fyz * yz;
+    j[(1, 3)] = -k.fy * (1.0 + yz * yz);
+    j[(1, 4)] = k.fy * xz * yz;
+    j[(1, 5)] = k.fy * xz;
+    let mut r = Vector3::new(k.fx * xz + k.cx - pixel.x, k.fy * yz + k.cy - pixel.y, 0.0);
     let dim = if let Some(ur) = u_right {
-        proj[(2, 0)] = k.fx * iz;
-        proj[(2, 2)] = -k.fx * (p.x - k.baseline) * iz * iz;
-        r.z = k.fx * (p.x - k.baseline) * iz + k.cx - ur;
+        // u_r = fx (x − b)/z + cx
+        let xbz = (x - k.baseline) * iz;
+        j[(2, 0)] = fxz;
+        j[(2, 2)] = -fxz * xbz;
+        j[(2, 3)] = -k.fx * xbz * yz;
+        j[(2, 4)] = k.fx * (1.0 + xbz * xz);
+        j[(2, 5)] = -k.fx * yz;
+        r.z = k.fx * xbz + k.cx - ur;
         3
     } else {
         2
     };
-    Some((r, proj * dp, dim))
+    Some((r, j, dim))
 }
 
 struct PoseProblem<'a> {
@@ -176,7 +213,7 @@ impl PoseProblem<'_> {
         let rt = (pose.rotation.matrix(), pose.translation);
         let mut c = 0.0;
         for o in self.observations {
-            if let Some((r, _, _)) = residual(&self.k, &rt, o, self.min_depth) {
+            if let Some(r) = residual_value(&self.k, &rt, o, self.min_depth) {
                 c += self.loss.evaluate(r.norm_squared())[0];
             }
         }
@@ -192,9 +229,10 @@ impl LeastSquares for PoseProblem<'_> {
     fn linearize(&mut self) -> f64 {
         self.h = Matrix6::zeros();
         self.g = Vector6::zeros();
+        // The rotation matrix once per linearisation, not once per observation.
+        let rt = (self.pose.rotation.matrix(), self.pose.translation);
         for o in self.observations {
-            let Some((mut r, mut j, _)) = pose_residual(&self.k, &self.pose, o, self.min_depth)
-            else {
+            let Some((mut r, mut j, _)) = residual(&self.k, &rt, o, self.min_depth) else {
                 continue;
             };
             if self.loss != Loss::Trivial {
@@ -205,8 +243,8 @@ impl LeastSquares for PoseProblem<'_> {
                 j *= corr.sqrt_rho1;
                 r *= corr.residual_scale;
             }
-            self.h += j.transpose() * j;
-            self.g += j.transpose() * r;
+            self.h.gemm_tr(1.0, &j, &j, 1.0);
+            self.g.gemv_tr(1.0, &j, &r, 1.0);
         }
         self.g.amax()
     }

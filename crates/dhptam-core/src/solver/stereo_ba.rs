@@ -24,7 +24,7 @@
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use nalgebra::{Matrix3, SMatrix, SVector, Vector2, Vector3};
+use nalgebra::{Matrix3, MatrixViewMut6, MatrixViewMut6x1, SMatrix, SVector, Vector2, Vector3};
 use rayon::prelude::*;
 
 use super::linear::{BlockCholesky, BlockPattern, LinearSolver};
@@ -36,7 +36,6 @@ use crate::geometry::so3::hat;
 use crate::geometry::Se3;
 
 type M36 = SMatrix<f64, 3, 6>;
-type M63 = SMatrix<f64, 6, 3>;
 type M66 = SMatrix<f64, 6, 6>;
 type V6 = SVector<f64, 6>;
 
@@ -235,7 +234,8 @@ struct StereoBa<'a> {
     // Linearisation (per sorted observation, per free keyframe, per point).
     jp: Vec<M36>,
     residual: Vec<Vector3<f64>>,
-    w: Vec<M63>,
+    /// Wᵀ = J_pointᵀ J_pose per observation (3×6), zero for fixed keyframes.
+    wt: Vec<M36>,
     u: Vec<M66>,
     gc: Vec<V6>,
     v: Vec<Matrix3<f64>>,
@@ -287,11 +287,11 @@ impl LeastSquares for StereoBa<'_> {
         let (poses, points, point_obs, obs) =
             (&self.poses, &self.points, &self.point_obs, &self.obs);
         // Each point owns a contiguous range of the per-observation arrays.
-        type PointSlices<'a> = (&'a mut [M36], &'a mut [Vector3<f64>], &'a mut [M63]);
+        type PointSlices<'a> = (&'a mut [M36], &'a mut [Vector3<f64>], &'a mut [M36]);
         let mut per_point: Vec<PointSlices> = Vec::with_capacity(points.len());
         {
             let (mut jp, mut res, mut w) =
-                (&mut self.jp[..], &mut self.residual[..], &mut self.w[..]);
+                (&mut self.jp[..], &mut self.residual[..], &mut self.wt[..]);
             for j in 0..points.len() {
                 let m = point_obs[j + 1] - point_obs[j];
                 let (a, b) = jp.split_at_mut(m);
@@ -324,7 +324,7 @@ impl LeastSquares for StereoBa<'_> {
                     ) else {
                         jp[local] = M36::zeros();
                         res[local] = Vector3::zeros();
-                        w[local] = M63::zeros();
+                        w[local] = M36::zeros();
                         continue;
                     };
                     if *loss != Loss::Trivial {
@@ -342,9 +342,9 @@ impl LeastSquares for StereoBa<'_> {
                     *v += bt * b;
                     *gp += bt * r;
                     w[local] = if o.free.is_some() {
-                        a.transpose() * b
+                        bt * a
                     } else {
-                        M63::zeros()
+                        M36::zeros()
                     };
                     jp[local] = a;
                     res[local] = r;
@@ -391,8 +391,8 @@ impl LeastSquares for StereoBa<'_> {
             return None;
         }
         let n_values = self.pattern.stored_blocks() * 36;
-        let (point_obs, obs, w, gp, v_inv) =
-            (&self.point_obs, &self.obs, &self.w, &self.gp, &self.v_inv);
+        let (point_obs, obs, wt, gp, v_inv) =
+            (&self.point_obs, &self.obs, &self.wt, &self.gp, &self.v_inv);
         let (pair_slots, pair_start) = (&self.pair_slots, &self.pair_start);
         // −Σ W V*⁻¹ Wᵀ into the blocks and Σ W V*⁻¹ g_p into the right-hand side, accumulated
         // per worker and summed.
@@ -407,28 +407,31 @@ impl LeastSquares for StereoBa<'_> {
                     let mut slot = pair_start[j];
                     for a in range.clone() {
                         let Some(ca) = obs[a].free else { continue };
-                        let wv = w[a] * vi;
-                        let b = wv * gp[j];
-                        for (x, y) in rhs[ca * 6..ca * 6 + 6].iter_mut().zip(b.iter()) {
-                            *x += y;
-                        }
+                        // (W_a V*⁻¹)ᵀ = V*⁻¹ W_aᵀ, 3×6.
+                        let vwt = vi * wt[a];
+                        let mut r = MatrixViewMut6x1::from_slice(&mut rhs[ca * 6..ca * 6 + 6]);
+                        r.gemv_tr(1.0, &vwt, &gp[j], 1.0);
                         for bi in a..range.end {
                             let Some(cb) = obs[bi].free else { continue };
                             let (s, transposed) = pair_slots[slot];
                             slot += 1;
-                            let block = wv * w[bi].transpose();
-                            let dst = &mut values[s * 36..s * 36 + 36];
+                            // Block (ca, cb) −= W_a V*⁻¹ W_bᵀ, written in place (or its
+                            // transpose into (cb, ca)).
+                            let mut dst =
+                                MatrixViewMut6::from_slice(&mut values[s * 36..s * 36 + 36]);
                             if transposed {
-                                let bt = block.transpose();
-                                dst.iter_mut().zip(bt.iter()).for_each(|(x, y)| *x -= y);
+                                dst.gemm_tr(-1.0, &wt[bi], &vwt, 1.0);
                             } else {
-                                dst.iter_mut().zip(block.iter()).for_each(|(x, y)| *x -= y);
+                                dst.gemm_tr(-1.0, &vwt, &wt[bi], 1.0);
                             }
                             // Two observations of one point by one keyframe meet on a diagonal
                             // block through both orders; add the other half here.
                             if bi != a && ca == cb {
-                                let bt = block.transpose();
-                                dst.iter_mut().zip(bt.iter()).for_each(|(x, y)| *x -= y);
+                                if transposed {
+                                    dst.gemm_tr(-1.0, &vwt, &wt[bi], 1.0);
+                                } else {
+                                    dst.gemm_tr(-1.0, &wt[bi], &vwt, 1.0);
+                                }
                             }
                         }
                     }
@@ -478,7 +481,7 @@ impl LeastSquares for StereoBa<'_> {
                 let mut b = gp[j];
                 for s in point_obs[j]..point_obs[j + 1] {
                     if let Some(c) = obs[s].free {
-                        b += w[s].transpose() * step_c[c];
+                        b.gemv(1.0, &wt[s], &step_c[c], 1.0);
                     }
                 }
                 *dp = -(v_inv[j] * b);
@@ -737,7 +740,7 @@ pub fn solve_stereo_ba(
         cholesky,
         jp: vec![M36::zeros(); n_obs],
         residual: vec![Vector3::zeros(); n_obs],
-        w: vec![M63::zeros(); n_obs],
+        wt: vec![M36::zeros(); n_obs],
         u: vec![M66::zeros(); n_free],
         gc: vec![V6::zeros(); n_free],
         v: vec![Matrix3::zeros(); n_pt],
