@@ -44,7 +44,7 @@ import torch.nn.functional as F  # noqa: N812 - torch's usual name
 from torch import nn
 
 from ..errors import FileError, InputError
-from .base import Features, TorchExtractor, refine_subpixel, to_features
+from .base import Features, TorchExtractor, refine_subpixel, to_features, window_max
 from .weights import safe_torch_load
 
 __all__ = ["R2D2", "R2D2Net", "architecture_from_string", "load_checkpoint"]
@@ -311,7 +311,7 @@ class R2D2(TorchExtractor):
             with self.autocast():
                 raw = self.net.trunk(image)
             desc, rel, rep = self.net.heads(raw.float())
-            maxima = rep == F.max_pool2d(rep, 3, stride=1, padding=1)
+            maxima = rep == window_max(rep, 1)
             maxima &= rep >= self.repeatability_threshold
             maxima &= rel >= self.reliability_threshold
             b, _, y, x = maxima.nonzero(as_tuple=True)
@@ -351,7 +351,7 @@ class R2D2(TorchExtractor):
         grid = torch.zeros(batch * height * width, device=xy.device, dtype=scores.dtype)
         grid.scatter_reduce_(0, flat, scores, reduce="amax", include_self=True)
         r = self.merge_radius_px
-        pooled = F.max_pool2d(grid.view(batch, 1, height, width), 2 * r + 1, stride=1, padding=r).view(-1)
+        pooled = window_max(grid.view(batch, 1, height, width), r).reshape(-1)
         return all_idx[scores >= pooled[flat]]
 
     def __repr__(self) -> str:
