@@ -204,15 +204,20 @@ class R2D2Net(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Normalised RGB (B, 3, H, W) → descriptors (B, D, H, W), reliability, repeatability (B, 1, H, W)."""
-        return self.heads(self.trunk(x))
+        features, reliability, repeatability = self.heads(self.trunk(x))
+        return F.normalize(features, p=2, dim=1), reliability, repeatability
 
     def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Raw features → unit-norm descriptors, reliability and repeatability maps."""
+        """Raw features → (the same raw features, reliability, repeatability).
+
+        The descriptor map is left unnormalised: the extractor normalises only the rows it
+        samples, which saves a pass over B × 128 × H × W values.
+        """
         squared = x * x
         reliability = F.softmax(self.clf(squared), dim=1)[:, 1:2]
         s = F.softplus(self.sal(squared))
         repeatability = s / (1.0 + s)
-        return F.normalize(x, p=2, dim=1), reliability, repeatability
+        return x, reliability, repeatability
 
 
 def _read_checkpoint(path: Path) -> dict[str, Any]:
@@ -321,7 +326,7 @@ class R2D2(TorchExtractor):
             ky = (y.float() + offset[:, 1] + 0.5) * (height / h) - 0.5
             xy.append(torch.stack([kx, ky], dim=1))
             scores.append(rel[b, 0, y, x] * rep[b, 0, y, x])
-            descs.append(desc[b, :, y, x])
+            descs.append(F.normalize(desc[b, :, y, x], p=2, dim=1))
             owner.append(b)
         all_xy, all_scores, all_desc, all_owner = (torch.cat(t) for t in (xy, scores, descs, owner))
         keep = self._merge(all_xy, all_scores, all_owner, batch, height, width)
