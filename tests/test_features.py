@@ -300,11 +300,21 @@ def test_bfloat16_trunk_agrees_with_float32() -> None:
     )
     assert half.descriptors.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(half.descriptors, axis=1), 1.0, atol=1e-5)
-    # Most keypoints are found again within 1 px, with nearly the same descriptor.
+    # Most keypoints are found again within 1 px, with nearly the same descriptor (measured:
+    # 98.5 % of them, median cosine 0.99996).
     d = np.linalg.norm(full.keypoints[:, None] - half.keypoints[None], axis=2)
     near = d.min(axis=1) <= 1.0
-    assert near.mean() > 0.8
+    assert near.mean() > 0.9
     same = np.einsum("ij,ij->i", full.descriptors[near], half.descriptors[d.argmin(axis=1)[near]])
-    assert np.median(same) > 0.98
+    assert np.median(same) > 0.995
     with pytest.raises(InputError, match="precision"):
         features.load("r2d2", path, device="cpu", precision="int8")
+
+
+@pytest.mark.parametrize("radius", [0, 1, 2, 4, 7])
+def test_window_max_equals_max_pool(radius: int) -> None:
+    from dhptam.features.base import window_max
+
+    x = torch.randn(2, 3, 37, 53)
+    expected = torch.nn.functional.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius)
+    torch.testing.assert_close(window_max(x, radius), expected, rtol=0, atol=0)

@@ -819,8 +819,7 @@ mod tests {
         let err =
             Config::from_toml_str("[features]\nextractor = \"surf\"\n", "f.toml").unwrap_err();
         assert!(err.to_string().contains("features.extractor"), "{err}");
-        let err =
-            Config::from_toml_str("[features]\ndevice = \"gpu\"\n", "f.toml").unwrap_err();
+        let err = Config::from_toml_str("[features]\ndevice = \"gpu\"\n", "f.toml").unwrap_err();
         assert!(err.to_string().contains("features.device"), "{err}");
     }
 

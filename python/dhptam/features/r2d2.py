@@ -44,7 +44,7 @@ import torch.nn.functional as F  # noqa: N812 - torch's usual name
 from torch import nn
 
 from ..errors import FileError, InputError
-from .base import Features, TorchExtractor, refine_subpixel, to_features
+from .base import Features, TorchExtractor, refine_subpixel, to_features, window_max
 from .weights import safe_torch_load
 
 __all__ = ["R2D2", "R2D2Net", "architecture_from_string", "load_checkpoint"]
@@ -204,15 +204,20 @@ class R2D2Net(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Normalised RGB (B, 3, H, W) → descriptors (B, D, H, W), reliability, repeatability (B, 1, H, W)."""
-        return self.heads(self.trunk(x))
+        features, reliability, repeatability = self.heads(self.trunk(x))
+        return F.normalize(features, p=2, dim=1), reliability, repeatability
 
     def heads(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Raw features → unit-norm descriptors, reliability and repeatability maps."""
+        """Raw features → (the same raw features, reliability, repeatability).
+
+        The descriptor map is left unnormalised: the extractor normalises only the rows it
+        samples, which saves a pass over B × 128 × H × W values.
+        """
         squared = x * x
         reliability = F.softmax(self.clf(squared), dim=1)[:, 1:2]
         s = F.softplus(self.sal(squared))
         repeatability = s / (1.0 + s)
-        return F.normalize(x, p=2, dim=1), reliability, repeatability
+        return x, reliability, repeatability
 
 
 def _read_checkpoint(path: Path) -> dict[str, Any]:
@@ -311,7 +316,7 @@ class R2D2(TorchExtractor):
             with self.autocast():
                 raw = self.net.trunk(image)
             desc, rel, rep = self.net.heads(raw.float())
-            maxima = rep == F.max_pool2d(rep, 3, stride=1, padding=1)
+            maxima = rep == window_max(rep, 1)
             maxima &= rep >= self.repeatability_threshold
             maxima &= rel >= self.reliability_threshold
             b, _, y, x = maxima.nonzero(as_tuple=True)
@@ -321,7 +326,7 @@ class R2D2(TorchExtractor):
             ky = (y.float() + offset[:, 1] + 0.5) * (height / h) - 0.5
             xy.append(torch.stack([kx, ky], dim=1))
             scores.append(rel[b, 0, y, x] * rep[b, 0, y, x])
-            descs.append(desc[b, :, y, x])
+            descs.append(F.normalize(desc[b, :, y, x], p=2, dim=1))
             owner.append(b)
         all_xy, all_scores, all_desc, all_owner = (torch.cat(t) for t in (xy, scores, descs, owner))
         keep = self._merge(all_xy, all_scores, all_owner, batch, height, width)
@@ -351,7 +356,7 @@ class R2D2(TorchExtractor):
         grid = torch.zeros(batch * height * width, device=xy.device, dtype=scores.dtype)
         grid.scatter_reduce_(0, flat, scores, reduce="amax", include_self=True)
         r = self.merge_radius_px
-        pooled = F.max_pool2d(grid.view(batch, 1, height, width), 2 * r + 1, stride=1, padding=r).view(-1)
+        pooled = window_max(grid.view(batch, 1, height, width), r).reshape(-1)
         return all_idx[scores >= pooled[flat]]
 
     def __repr__(self) -> str:

@@ -43,7 +43,7 @@ import torch.nn.functional as F  # noqa: N812 - torch's usual name
 from torch import nn
 
 from ..errors import FileError
-from .base import Features, TorchExtractor, refine_subpixel, to_features
+from .base import Features, TorchExtractor, refine_subpixel, to_features, window_max
 from .weights import safe_torch_load
 
 __all__ = ["SuperPoint", "SuperPointNet", "convert_state_dict", "simple_nms"]
@@ -145,7 +145,7 @@ def simple_nms(scores: torch.Tensor, radius: int) -> torch.Tensor:
     """
 
     def pool(x: torch.Tensor) -> torch.Tensor:
-        return F.max_pool2d(x, kernel_size=2 * radius + 1, stride=1, padding=radius)
+        return window_max(x, radius)
 
     zeros = torch.zeros_like(scores)
     is_max = scores == pool(scores)
@@ -195,7 +195,8 @@ class SuperPoint(TorchExtractor):
         self.weights = Path(weights) if weights is not None else None
         self.net = load_network(weights) if weights is not None else net  # type: ignore[assignment]
         assert self.net is not None
-        self.net.eval().to(self.device)
+        # NHWC: oneDNN's fast convolution kernels on the CPU, cuDNN's preferred layout on CUDA.
+        self.net.eval().to(self.device, memory_format=torch.channels_last)
         self.descriptor_width = self.net.convDb.out_channels
         self.nms_radius = int(nms_radius)
         self.detection_threshold = float(detection_threshold)
