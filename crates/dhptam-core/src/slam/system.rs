@@ -454,6 +454,11 @@ impl System {
             .collect()
     }
 
+    /// The tracker's state (last frame, velocity, reference keyframe).
+    pub fn tracker_state(&self) -> &TrackerState {
+        &self.state
+    }
+
     /// A read view of the map (for tests and tools).
     pub fn with_map<T>(&self, f: impl FnOnce(&Map) -> T) -> T {
         f(&read_lock(&self.shared.map))
