@@ -81,10 +81,10 @@ def test_save_load_continue_gives_the_same_poses(tmp_path: Path) -> None:
         r = second.track(f.t_ns, f.left, f.right)
         assert (r.state, r.keyframe) == (e.state, e.keyframe)
         np.testing.assert_allclose(r.pose, e.pose, atol=1e-9)
-    with pytest.raises(dhptam.FileError, match="missing.bin"):
+    with pytest.raises(dhptam.FileError, match=r"missing\.bin"):
         second.load_map(tmp_path / "missing.bin")
     (tmp_path / "junk.bin").write_bytes(b"not a map")
-    with pytest.raises(dhptam.DhptamError, match="junk.bin"):
+    with pytest.raises(dhptam.DhptamError, match=r"junk\.bin"):
         second.load_map(tmp_path / "junk.bin")
 
 
@@ -122,13 +122,13 @@ def test_bad_input_is_refused_with_names() -> None:
     f = generate(frames=1, seed=5)[0]
     system = dhptam.System(CALIB, threaded=False)
     bad = type(f.left)(f.left.keypoints, f.left.descriptors.astype(np.float64))
-    with pytest.raises(dhptam.InputError, match="left.descriptors"):
+    with pytest.raises(dhptam.InputError, match=r"left\.descriptors"):
         system.track(0, bad, f.right)
     bad = type(f.left)(f.left.keypoints[:, :1].copy(), f.left.descriptors)
-    with pytest.raises(dhptam.InputError, match="left.keypoints"):
+    with pytest.raises(dhptam.InputError, match=r"left\.keypoints"):
         system.track(0, bad, f.right)
     short = type(f.left)(f.left.keypoints[:-1].copy(), f.left.descriptors)
-    with pytest.raises(dhptam.InputError, match="left.keypoints"):
+    with pytest.raises(dhptam.InputError, match=r"left\.keypoints"):
         system.track(0, short, f.right)
     with pytest.raises(dhptam.InputError, match="baseline"):
         dhptam.System(dhptam.StereoCalibration(400, 400, 320, 240, -0.1, 640, 480))

@@ -242,7 +242,6 @@ def match_descriptors(
     mutual: bool = True,
 ) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float32]]: ...
 def _descriptor_address(array: npt.NDArray[np.float32] | npt.NDArray[np.uint8]) -> int: ...
-
 def _e3ct(
     x: _U16,
     y: _U16,
