@@ -1,5 +1,5 @@
 //! SLAM back-end costs per stage, on synthetic sequences with ~1 000 stereo features a frame
-//! (`slam::synthetic`, 4 700 landmarks, 0.5 px noise, 10 % outliers, 32-D float descriptors):
+//! (`slam::synthetic`, 5 500 landmarks, 0.5 px noise, 10 % outliers, 32-D float descriptors):
 //! - tracking one frame: stereo matching + local-map search + two motion-only refinements
 //!   (excluding feature extraction and keyframe insertion), after 60 frames of mapping;
 //! - local mapping for one keyframe (local BA over the window + culling), on a copy of the map;
@@ -36,7 +36,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
 
 fn options(frames: usize, turns: f64) -> SyntheticOptions {
     SyntheticOptions {
-        landmarks: 4700,
+        landmarks: 5500,
         frames,
         turns,
         seed: 2,
