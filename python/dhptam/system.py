@@ -70,9 +70,7 @@ class System:
     ) -> None:
         c = calibration
         self.calibration = calibration
-        self._core = _core.PySystem(
-            c.fx, c.fy, c.cx, c.cy, c.baseline_m, c.width, c.height, config, threaded
-        )
+        self._core = _core.PySystem(c.fx, c.fy, c.cx, c.cy, c.baseline_m, c.width, c.height, config, threaded)
 
     def track(self, t_ns: int, left: FeatureSet, right: FeatureSet) -> TrackResult:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds."""

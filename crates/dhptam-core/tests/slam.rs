@@ -162,7 +162,9 @@ fn threaded_stress_and_prompt_shutdown() {
     let traj = system.trajectory();
     assert_eq!(traj.len(), tracked);
     assert!(traj.windows(2).all(|w| w[0].0 < w[1].0));
-    assert!(traj.iter().all(|(_, p)| p.matrix().iter().all(|v| v.is_finite())));
+    assert!(traj
+        .iter()
+        .all(|(_, p)| p.matrix().iter().all(|v| v.is_finite())));
     let truth: Vec<Vector3<f64>> = frames[..tracked]
         .iter()
         .map(|f| f.world_from_cam.translation)
@@ -177,4 +179,81 @@ fn threaded_stress_and_prompt_shutdown() {
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
     };
     assert!(system.track(f.t_ns, left, left).is_err());
+}
+
+fn run_loop(frames: &[SyntheticFrame], o: &SyntheticOptions, closing: bool) -> (f64, System) {
+    let mut config = Config::default();
+    config.loop_closing.enabled = closing;
+    let mut system = System::new(o.calib, config, false).unwrap();
+    for f in frames {
+        let r = track(&mut system, f);
+        assert_ne!(r.state, TrackState::Lost, "frame {} lost", f.t_ns);
+    }
+    let truth: Vec<Vector3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    (ate(&positions(&system.trajectory()), &truth), system)
+}
+
+#[test]
+fn loop_closure_halves_the_injected_drift() {
+    let o = SyntheticOptions {
+        frames: 460,
+        turns: 1.15,
+        drift_deg: 4.0,
+        drift_m: 0.4,
+        seed: 21,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let (before, open) = run_loop(&frames, &o, false);
+    assert!(open.loop_closures().is_empty());
+    let (after, closed) = run_loop(&frames, &o, true);
+    let loops = closed.loop_closures();
+    eprintln!("ATE without loop closing {before:.4} m, with {after:.4} m, loops {loops:?}");
+    assert!(!loops.is_empty(), "no loop detected");
+    // The loop joins the last quarter turn to the start.
+    let (query, matched) = loops[0];
+    assert!(query > frames[frames.len() * 3 / 4].t_ns && matched < frames[frames.len() / 4].t_ns);
+    assert!(
+        before > 0.04,
+        "the injected drift did not show ({before} m)"
+    );
+    assert!(
+        after <= 0.5 * before,
+        "ATE {after} m after closure vs {before} m before"
+    );
+}
+
+#[test]
+fn relocalises_after_a_jump_to_a_known_place() {
+    let o = SyntheticOptions {
+        frames: 200,
+        seed: 8,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let mut system = System::new(o.calib, Config::default(), false).unwrap();
+    let mut results = Vec::new();
+    for f in &frames[..120] {
+        results.push(track(&mut system, f));
+    }
+    // The camera "teleports" back to where frame 30 was taken (timestamps keep increasing).
+    let mut jumped = frames[30].clone();
+    jumped.t_ns = frames[120].t_ns;
+    let r = track(&mut system, &jumped);
+    assert_eq!(r.state, TrackState::Relocalised, "{} inliers", r.inliers);
+    assert!(r.keyframe);
+    let d = (results[30].world_from_cam.inverse() * r.world_from_cam)
+        .log()
+        .norm();
+    assert!(
+        d < 0.02,
+        "relocalised pose differs from the first visit's by {d}"
+    );
+    // Tracking goes on from there.
+    let mut next = frames[31].clone();
+    next.t_ns = frames[121].t_ns;
+    assert_eq!(track(&mut system, &next).state, TrackState::Ok);
 }

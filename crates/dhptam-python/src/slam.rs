@@ -41,7 +41,9 @@ fn describe(obj: &Bound<'_, PyAny>) -> String {
 
 fn pose_array<'py>(py: Python<'py>, pose: &Se3) -> Bound<'py, PyArray2<f64>> {
     let m = pose.matrix();
-    let rows: Vec<Vec<f64>> = (0..4).map(|r| (0..4).map(|c| m[(r, c)]).collect()).collect();
+    let rows: Vec<Vec<f64>> = (0..4)
+        .map(|r| (0..4).map(|c| m[(r, c)]).collect())
+        .collect();
     // A 4×4 from fixed-size rows cannot fail.
     PyArray2::from_vec2(py, &rows).unwrap_or_else(|_| unreachable!())
 }
@@ -123,7 +125,9 @@ impl PySystem {
             keypoints: rk.as_slice().map_err(strided)?,
             descriptors: rd.view()?,
         };
-        let r = py.detach(|| self.with(|s| s.track(t_ns, left, right))).py()?;
+        let r = py
+            .detach(|| self.with(|s| s.track(t_ns, left, right)))
+            .py()?;
         Ok((
             pose_array(py, &r.world_from_cam),
             r.state.as_str(),

@@ -93,6 +93,9 @@ pub struct Map {
     pub loops: Vec<(u64, u64)>,
     /// Every tracked frame, in order.
     pub trajectory: Vec<FrameRecord>,
+    /// Loop corrections applied so far: a bundle adjustment prepared before a correction
+    /// discards its result.
+    pub corrections: u64,
 }
 
 impl Map {

@@ -45,7 +45,7 @@ pub fn local_mapping(
 ) -> Result<MappingReport> {
     let mut report = MappingReport::default();
     // 1. Gather the window under a read lock.
-    let (kf_ids, mut kfs, point_ids, mut points, observations) = {
+    let (kf_ids, mut kfs, point_ids, mut points, observations, epoch) = {
         let m = read_lock(map);
         let Some(k) = m.keyframes.get(&kf) else {
             return Ok(report);
@@ -99,7 +99,7 @@ pub fn local_mapping(
                 });
             }
         }
-        (kf_ids, kfs, point_ids, points, observations)
+        (kf_ids, kfs, point_ids, points, observations, m.corrections)
     };
     report.fixed = kfs.iter().filter(|k| k.fixed).count();
     report.optimised = kfs.len() - report.fixed;
@@ -129,6 +129,10 @@ pub fn local_mapping(
     report.interrupted = result.report.termination == Termination::Interrupted;
     // 3. Write back under the write lock (keyframes or points removed meanwhile are skipped).
     let mut m = write_lock(map);
+    if m.corrections != epoch {
+        log::info!("mapping: keyframe {kf}: a loop correction intervened; result discarded");
+        return Ok(report);
+    }
     for (id, k) in kf_ids.iter().zip(&kfs) {
         if !k.fixed {
             if let Some(kf) = m.keyframes.get_mut(id) {

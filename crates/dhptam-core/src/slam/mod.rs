@@ -9,6 +9,7 @@
 //! loop closing on their own threads, joined by bounded channels; in synchronous mode they
 //! run inline after each keyframe and every run gives the same results.
 
+pub mod loop_closing;
 pub mod map;
 pub mod mapping;
 pub mod persist;

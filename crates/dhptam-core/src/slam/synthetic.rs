@@ -6,7 +6,7 @@
 //! Gaussian noise to it (renormalised) and to its pixel, and a fraction of observations are
 //! outliers placed at random pixels. `drift_deg` injects drift: landmarks outside the start
 //! sector (|azimuth| > `start_half_angle_deg`) appear rotated about the y axis by an angle
-//! growing linearly to `drift_deg` at the last frame, so odometry drifts away from the truth
+//! growing linearly to `drift_deg` and shifted along y by up to `drift_m` at the last frame, so odometry drifts away from the truth
 //! while the start sector stays undeformed (a loop closure there can recover).
 
 use nalgebra::{Matrix3, Vector3};
@@ -44,6 +44,8 @@ pub struct SyntheticOptions {
     pub descriptor_noise: f64,
     /// Injected yaw drift reached at the last frame, degrees (0: none).
     pub drift_deg: f64,
+    /// Injected vertical (world y) drift reached at the last frame, metres (0: none).
+    pub drift_m: f64,
     /// Half-width of the undeformed start sector, degrees.
     pub start_half_angle_deg: f64,
     /// Frame period, nanoseconds.
@@ -75,6 +77,7 @@ impl Default for SyntheticOptions {
             descriptor_dim: 32,
             descriptor_noise: 0.03,
             drift_deg: 0.0,
+            drift_m: 0.0,
             start_half_angle_deg: 60.0,
             period_ns: 50_000_000,
             seed: 1,
@@ -151,13 +154,17 @@ pub fn generate(o: &SyntheticOptions) -> Vec<SyntheticFrame> {
             let theta = 2.0 * std::f64::consts::PI * o.turns * s;
             let pose = circle_pose(theta, o.radius_m);
             let cam_from_world = pose.inverse();
-            let drift = So3::exp(&Vector3::new(0.0, (o.drift_deg * s).to_radians(), 0.0));
+            let drift = Se3::new(
+                So3::exp(&Vector3::new(0.0, (o.drift_deg * s).to_radians(), 0.0)),
+                Vector3::new(0.0, o.drift_m * s, 0.0),
+            );
+            let drifting = o.drift_deg != 0.0 || o.drift_m != 0.0;
             let mut left = SyntheticView::default();
             let mut right = SyntheticView::default();
             for (x, d, azimuth) in &landmarks {
                 let deformed = azimuth.abs() > o.start_half_angle_deg.to_radians();
-                let xw = if deformed && o.drift_deg != 0.0 {
-                    drift.matrix() * x
+                let xw = if deformed && drifting {
+                    drift.transform_point(x)
                 } else {
                     *x
                 };

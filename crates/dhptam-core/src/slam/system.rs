@@ -9,6 +9,7 @@ use std::sync::{Arc, Mutex, RwLock};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
+use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::local_mapping;
 use super::tracking::{
@@ -20,6 +21,7 @@ use crate::config::Config;
 use crate::error::{Error, Result};
 use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors};
+use crate::place::PlaceDatabase;
 
 /// One image's features: keypoints `(x, y)` row-major as `[x0, y0, x1, y1, …]` (rectified
 /// pixels) and one descriptor row per keypoint.
@@ -63,6 +65,8 @@ pub(crate) struct Shared {
     pub(crate) shutdown: AtomicBool,
     pub(crate) calib: StereoCalibration,
     pub(crate) config: Config,
+    /// Keyframe embeddings for loop detection and relocalisation.
+    pub(crate) place: Mutex<PlaceDatabase>,
 }
 
 impl Shared {
@@ -97,6 +101,24 @@ impl Shared {
             log::warn!("mapping: keyframe {kf}: bundle adjustment failed: {e}");
         }
     }
+
+    /// Loop detection and correction for keyframe `kf` (failures are logged).
+    pub(crate) fn close_loops(&self, kf: u64) {
+        let c = &self.config;
+        let r = self.time("loop_closing", || {
+            detect_and_close(
+                &self.map,
+                &self.place,
+                kf,
+                &self.calib,
+                &c.tracking,
+                &c.loop_closing,
+            )
+        });
+        if let Err(e) = r {
+            log::warn!("loop: keyframe {kf}: {e}");
+        }
+    }
 }
 
 /// The SLAM system. See the module documentation.
@@ -110,14 +132,36 @@ pub struct System {
     closed: bool,
 }
 
-fn mapping_worker(shared: Arc<Shared>, rx: Receiver<u64>) {
+fn mapping_worker(shared: Arc<Shared>, rx: Receiver<u64>, loops: SyncSender<u64>) {
     while let Ok(kf) = rx.recv() {
         if shared.shutdown.load(Ordering::Acquire) {
             break;
         }
         shared.interrupt.store(false, Ordering::Release);
         shared.map_keyframe(kf, Some(&shared.interrupt));
+        if loops.send(kf).is_err() {
+            break;
+        }
     }
+}
+
+fn loop_worker(shared: Arc<Shared>, rx: Receiver<u64>) {
+    while let Ok(kf) = rx.recv() {
+        if shared.shutdown.load(Ordering::Acquire) {
+            break;
+        }
+        shared.close_loops(kf);
+    }
+}
+
+fn spawn(name: &str, f: impl FnOnce() + Send + 'static) -> Result<JoinHandle<()>> {
+    std::thread::Builder::new()
+        .name(name.into())
+        .spawn(f)
+        .map_err(|e| Error::Numerical {
+            operation: "starting a SLAM thread",
+            reason: e.to_string(),
+        })
 }
 
 impl System {
@@ -132,6 +176,7 @@ impl System {
             shutdown: AtomicBool::new(false),
             calib,
             config,
+            place: Mutex::new(PlaceDatabase::new()),
         });
         let mut system = Self {
             shared,
@@ -143,17 +188,18 @@ impl System {
             closed: false,
         };
         if threaded {
-            let (tx, rx) = sync_channel(system.shared.config.mapping.queue as usize);
+            let queue = system.shared.config.mapping.queue as usize;
+            let (tx, rx) = sync_channel(queue);
+            let (loop_tx, loop_rx) = sync_channel(queue);
             let shared = Arc::clone(&system.shared);
-            let handle = std::thread::Builder::new()
-                .name("dhptam-mapping".into())
-                .spawn(move || mapping_worker(shared, rx))
-                .map_err(|e| Error::Numerical {
-                    operation: "starting the mapping thread",
-                    reason: e.to_string(),
-                })?;
+            system
+                .workers
+                .push(spawn("dhptam-loop", move || loop_worker(shared, loop_rx))?);
+            let shared = Arc::clone(&system.shared);
+            system.workers.push(spawn("dhptam-mapping", move || {
+                mapping_worker(shared, rx, loop_tx)
+            })?);
             system.mapping_tx = Some(tx);
-            system.workers.push(handle);
         }
         Ok(system)
     }
@@ -258,18 +304,25 @@ impl System {
                     let mut map = write_lock(&shared.map);
                     commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, previous, false)
                 }
-                None => {
-                    if !self.state.lost {
-                        log::info!("tracking: lost at t={t_ns} ns");
+                None => match shared.time("relocalise", || self.relocalise(&frame, &ctx)) {
+                    Some((t, reference)) => {
+                        let mut map = write_lock(&shared.map);
+                        self.state.reference = Some(reference);
+                        commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, None, true)
                     }
-                    self.state.lost = true;
-                    super::tracking::FrameOutcome {
-                        state: TrackState::Lost,
-                        world_from_cam: predicted.inverse(),
-                        inliers: 0,
-                        keyframe: None,
+                    None => {
+                        if !self.state.lost {
+                            log::info!("tracking: lost at t={t_ns} ns");
+                        }
+                        self.state.lost = true;
+                        super::tracking::FrameOutcome {
+                            state: TrackState::Lost,
+                            world_from_cam: predicted.inverse(),
+                            inliers: 0,
+                            keyframe: None,
+                        }
                     }
-                }
+                },
             }
         };
         {
@@ -292,6 +345,56 @@ impl System {
         })
     }
 
+    /// Place query with the frame's embedding, PnP verification, then tracking against the
+    /// matched keyframe's local map from the PnP pose.
+    fn relocalise(
+        &self,
+        frame: &StereoFrame,
+        ctx: &TrackContext,
+    ) -> Option<(super::tracking::Tracked, u64)> {
+        let cfg = &self.shared.config.loop_closing;
+        let e = crate::place::embedding(frame.descriptors)?;
+        let candidates = lock(&self.shared.place).query(
+            &e,
+            cfg.candidates as usize,
+            cfg.min_score as f32,
+            |_| false,
+        );
+        let map = read_lock(&self.shared.map);
+        for (c, score) in candidates {
+            let v = verify(
+                &map,
+                c,
+                &frame.keypoints,
+                frame.descriptors,
+                ctx.calib,
+                ctx.cfg,
+                cfg,
+            );
+            let m = match v {
+                Ok(Some(m)) => m,
+                Ok(None) => continue,
+                Err(e) => {
+                    log::debug!("relocalisation: candidate {c}: {e}");
+                    continue;
+                }
+            };
+            let mut state = self.state.clone();
+            state.reference = Some(c);
+            let tracked = track_local_map(&map, &state, frame, ctx, m.cam_from_world)
+                .filter(|t| t.inliers >= ctx.cfg.min_tracked as usize);
+            if let Some(t) = tracked {
+                log::info!(
+                    "tracking: relocalised at t={} ns against keyframe {c} (score {score:.3}, {} inliers)",
+                    frame.t_ns,
+                    t.inliers
+                );
+                return Some((t, c));
+            }
+        }
+        None
+    }
+
     fn after_keyframe(&mut self, kf: u64) {
         match &self.mapping_tx {
             Some(tx) => {
@@ -300,7 +403,10 @@ impl System {
                     log::warn!("mapping thread gone; keyframe {kf} not optimised");
                 }
             }
-            None => self.shared.map_keyframe(kf, None),
+            None => {
+                self.shared.map_keyframe(kf, None);
+                self.shared.close_loops(kf);
+            }
         }
     }
 
@@ -348,6 +454,11 @@ impl System {
             .collect()
     }
 
+    /// The tracker's state (last frame, velocity, reference keyframe).
+    pub fn tracker_state(&self) -> &TrackerState {
+        &self.state
+    }
+
     /// A read view of the map (for tests and tools).
     pub fn with_map<T>(&self, f: impl FnOnce(&Map) -> T) -> T {
         f(&read_lock(&self.shared.map))
@@ -370,6 +481,13 @@ impl System {
                 format!("{calib:?}"),
             ));
         }
+        let mut db = PlaceDatabase::new();
+        for k in map.keyframes.values() {
+            if let Some(e) = crate::place::embedding(k.descriptors.view()) {
+                db.add(k.id, e)?;
+            }
+        }
+        *lock(&self.shared.place) = db;
         *write_lock(&self.shared.map) = map;
         self.state = state;
         self.descriptor = descriptor;

@@ -1,0 +1,138 @@
+"""The SLAM back-end (dhptam.System) on synthetic stereo feature sequences."""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from slam_synthetic import CALIB, Frame, ate, generate
+
+import dhptam
+
+
+def run(frames: list[Frame], config: dhptam.Config | None = None) -> dhptam.System:
+    system = dhptam.System(CALIB, config, threaded=False)
+    for f in frames:
+        r = system.track(f.t_ns, f.left, f.right)
+        assert r.state in ("initialised", "ok"), f"frame {f.t_ns}: {r.state} ({r.inliers})"
+    return system
+
+
+def positions(system: dhptam.System) -> np.ndarray:
+    return system.trajectory()[1][:, :3, 3]
+
+
+def test_tracks_every_frame_with_noise_and_outliers() -> None:
+    frames = generate(frames=200, seed=1)
+    system = run(frames)
+    t, poses = system.trajectory()
+    assert t.tolist() == [f.t_ns for f in frames]
+    assert poses.shape == (200, 4, 4)
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames])
+    error = ate(positions(system), truth)
+    assert error < 0.03, error  # 0.5 px noise, 10 % outliers, half a turn of 1 m radius
+    kf_t, kf_poses = system.keyframe_trajectory()
+    assert 2 < len(kf_t) < 100 and kf_poses.shape == (len(kf_t), 4, 4)
+    points = system.map_points()
+    assert points.ndim == 2 and points.shape[1] == 3 and len(points) > 500
+    # Map points lie on the landmark cylinder (4-7 m from the first camera's axis).
+    timing = system.timing()
+    assert timing["track"]["count"] == 200 and timing["local_ba"]["count"] == len(kf_t)
+
+
+def test_binary_descriptors_track() -> None:
+    frames = generate(frames=60, turns=0.15, binary=True, seed=2)
+    system = run(frames)
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames])
+    assert ate(positions(system), truth) < 0.03
+
+
+def test_loop_closure_halves_the_injected_drift() -> None:
+    frames = generate(frames=460, turns=1.15, drift_m=0.4, drift_deg=4.0, seed=21)
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames])
+    off = run(frames, dhptam.Config.from_toml("[loop_closing]\nenabled = false"))
+    assert off.loop_closures() == []
+    before = ate(positions(off), truth)
+    on = run(frames)
+    after = ate(positions(on), truth)
+    loops = on.loop_closures()
+    assert loops, "no loop detected"
+    query, matched = loops[0]
+    assert query > frames[300].t_ns and matched < frames[100].t_ns
+    assert before > 0.04, before
+    assert after <= 0.5 * before, (after, before)
+
+
+def test_save_load_continue_gives_the_same_poses(tmp_path: Path) -> None:
+    frames = generate(frames=100, seed=3)
+    reference = dhptam.System(CALIB, threaded=False)
+    expected = [reference.track(f.t_ns, f.left, f.right) for f in frames]
+    first = dhptam.System(CALIB, threaded=False)
+    for f in frames[:50]:
+        first.track(f.t_ns, f.left, f.right)
+    first.save_map(tmp_path / "map.bin")
+    second = dhptam.System(CALIB, threaded=False)
+    second.load_map(tmp_path / "map.bin")
+    assert len(second.trajectory()[0]) == 50
+    for f, e in zip(frames[50:], expected[50:], strict=True):
+        r = second.track(f.t_ns, f.left, f.right)
+        assert (r.state, r.keyframe) == (e.state, e.keyframe)
+        np.testing.assert_allclose(r.pose, e.pose, atol=1e-9)
+    with pytest.raises(dhptam.FileError, match=r"missing\.bin"):
+        second.load_map(tmp_path / "missing.bin")
+    (tmp_path / "junk.bin").write_bytes(b"not a map")
+    with pytest.raises(dhptam.DhptamError, match=r"junk\.bin"):
+        second.load_map(tmp_path / "junk.bin")
+
+
+def test_threaded_stress_and_prompt_shutdown() -> None:
+    frames = generate(frames=2000, turns=2.0, landmarks=700, seed=4)
+    system = dhptam.System(CALIB, threaded=True)
+    results: list[dhptam.TrackResult] = []
+    errors: list[Exception] = []
+
+    def feed() -> None:
+        for f in frames:
+            try:
+                results.append(system.track(f.t_ns, f.left, f.right))
+            except dhptam.DhptamError as e:  # raised once shut down
+                errors.append(e)
+                return
+
+    worker = threading.Thread(target=feed)
+    worker.start()
+    while len(results) < 1500:
+        time.sleep(0.01)
+    system.shutdown()
+    worker.join(timeout=60)
+    assert not worker.is_alive(), "tracking did not stop after shutdown"
+    assert errors and len(results) < len(frames)
+    assert all(r.state in ("initialised", "ok") for r in results)
+    t, poses = system.trajectory()
+    assert t.tolist() == [r.t_ns for r in results]
+    assert np.all(np.isfinite(poses))
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames[: len(t)]])
+    assert ate(poses[:, :3, 3], truth) < 0.1
+
+
+def test_bad_input_is_refused_with_names() -> None:
+    f = generate(frames=1, seed=5)[0]
+    system = dhptam.System(CALIB, threaded=False)
+    bad = type(f.left)(f.left.keypoints, f.left.descriptors.astype(np.float64))
+    with pytest.raises(dhptam.InputError, match=r"left\.descriptors"):
+        system.track(0, bad, f.right)
+    bad = type(f.left)(f.left.keypoints[:, :1].copy(), f.left.descriptors)
+    with pytest.raises(dhptam.InputError, match=r"left\.keypoints"):
+        system.track(0, bad, f.right)
+    short = type(f.left)(f.left.keypoints[:-1].copy(), f.left.descriptors)
+    with pytest.raises(dhptam.InputError, match=r"left\.keypoints"):
+        system.track(0, short, f.right)
+    with pytest.raises(dhptam.InputError, match="baseline"):
+        dhptam.System(dhptam.StereoCalibration(400, 400, 320, 240, -0.1, 640, 480))
+    system.track(0, f.left, f.right)
+    binary = type(f.left)(f.left.keypoints, np.zeros((len(f.left.keypoints), 32), np.uint8))
+    with pytest.raises(dhptam.InputError, match="descriptors"):
+        system.track(1, binary, f.right)
