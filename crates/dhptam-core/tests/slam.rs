@@ -196,6 +196,7 @@ fn threaded_stress_and_prompt_shutdown() {
 fn run_loop(frames: &[SyntheticFrame], o: &SyntheticOptions, closing: bool) -> (f64, System) {
     let mut config = Config::default();
     config.loop_closing.enabled = closing;
+    config.mapping.ba_iterations = 10;
     let mut system = System::new(o.calib, config, false).unwrap();
     for f in frames {
         let r = track(&mut system, f);
@@ -211,8 +212,8 @@ fn run_loop(frames: &[SyntheticFrame], o: &SyntheticOptions, closing: bool) -> (
 #[test]
 fn loop_closure_halves_the_injected_drift() {
     let o = SyntheticOptions {
-        landmarks: 1200,
-        frames: 460,
+        landmarks: 900,
+        frames: 320,
         turns: 1.15,
         drift_deg: 4.0,
         drift_m: 0.4,
