@@ -104,7 +104,7 @@ def test_threaded_stress_and_prompt_shutdown() -> None:
 
     worker = threading.Thread(target=feed)
     worker.start()
-    while len(results) < 1500:
+    while len(results) < 1500 and worker.is_alive():
         time.sleep(0.01)
     system.shutdown()
     worker.join(timeout=60)
