@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -136,3 +137,35 @@ def test_bad_input_is_refused_with_names() -> None:
     binary = type(f.left)(f.left.keypoints, np.zeros((len(f.left.keypoints), 32), np.uint8))
     with pytest.raises(dhptam.InputError, match="descriptors"):
         system.track(1, binary, f.right)
+
+
+def _switch_appearance(frames: list[Frame], at: int, seed: int = 7) -> list[Frame]:
+    """From frame ``at`` on, every descriptor is turned by one fixed random rotation, as when
+    the fusion swaps frame-dominated for event-dominated images: landmarks stay recognisable
+    among the new frames (distances between them are kept) but not against the old map."""
+    dim = frames[0].left.descriptors.shape[1]
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(dim, dim)))
+
+    def turned(v: Any) -> Any:
+        d = np.ascontiguousarray(np.asarray(v.descriptors, np.float64) @ q.T, dtype=np.float32)
+        return type(v)(v.keypoints, d)
+
+    return frames[:at] + [
+        Frame(f.t_ns, f.world_from_cam, turned(f.left), turned(f.right)) for f in frames[at:]
+    ]
+
+
+def test_an_abrupt_change_of_appearance_starts_a_new_map_segment_and_tracking_goes_on() -> None:
+    frames = _switch_appearance(generate(frames=80, seed=3), at=40)
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames])
+    system = dhptam.System(CALIB, None, threaded=False)
+    states = [system.track(f.t_ns, f.left, f.right).state for f in frames]
+    assert "lost" not in states
+    assert states[40] == "initialised", states[35:45]
+    t, _ = system.trajectory()
+    assert len(t) == 80
+    assert ate(positions(system), truth) < 0.05
+    # Without re-initialisation the same sequence is lost after the switch.
+    off = dhptam.System(CALIB, dhptam.Config.from_toml("[tracking]\nreinitialise = false"), threaded=False)
+    states_off = [off.track(f.t_ns, f.left, f.right).state for f in frames]
+    assert states_off[41:].count("lost") > 30, states_off[40:]

@@ -275,6 +275,12 @@ config_section! {
         keyframe_min_tracked: u32 = 50,
         /// The first keyframe needs at least this many triangulated stereo matches.
         init_min_points: u32 = 30,
+        /// When a frame can be neither tracked nor relocalised, start a new map segment from
+        /// its own stereo points at the constant-velocity pose, so tracking resumes at once
+        /// (after an abrupt change of appearance, e.g. the fusion switching between frame- and
+        /// event-dominated images); the old keyframes stay for relocalisation and loop
+        /// closing. Off: the system stays lost until relocalisation succeeds.
+        reinitialise: bool = true,
         /// Levenberg–Marquardt iterations of each motion-only refinement.
         refine_iterations: u32 = 10,
         /// Huber scale and outlier bound of the refinement, pixels (√7.815: the 95 % χ²

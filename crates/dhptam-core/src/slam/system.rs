@@ -13,8 +13,8 @@ use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::local_mapping;
 use super::tracking::{
-    bootstrap, commit_tracked, last_pose, stereo_match, track_local_map, StereoFrame, TrackContext,
-    TrackerState,
+    bootstrap, commit_tracked, last_pose, reinitialise, stereo_match, track_local_map, StereoFrame,
+    TrackContext, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -311,16 +311,30 @@ impl System {
                         commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, None, true)
                     }
                     None => {
-                        if !self.state.lost {
-                            log::info!("tracking: lost at t={t_ns} ns");
-                        }
-                        self.state.lost = true;
-                        super::tracking::FrameOutcome {
-                            state: TrackState::Lost,
-                            world_from_cam: predicted.inverse(),
-                            inliers: 0,
-                            keyframe: None,
-                        }
+                        let restarted = if ctx.cfg.reinitialise && previous.is_some() {
+                            let mut map = write_lock(&shared.map);
+                            reinitialise(
+                                &mut map,
+                                &mut self.state,
+                                &frame,
+                                &ctx,
+                                predicted.inverse(),
+                            )
+                        } else {
+                            None
+                        };
+                        restarted.unwrap_or_else(|| {
+                            if !self.state.lost {
+                                log::info!("tracking: lost at t={t_ns} ns");
+                            }
+                            self.state.lost = true;
+                            super::tracking::FrameOutcome {
+                                state: TrackState::Lost,
+                                world_from_cam: predicted.inverse(),
+                                inliers: 0,
+                                keyframe: None,
+                            }
+                        })
                     }
                 },
             }

@@ -480,6 +480,43 @@ pub fn bootstrap(
     }
 }
 
+/// Starts a new map segment from `frame`'s own stereo points at `world_from_cam` (the
+/// constant-velocity prediction) when the frame could be neither tracked nor relocalised.
+/// Returns `None` when the frame has too few stereo points (the frame stays lost).
+pub fn reinitialise(
+    map: &mut Map,
+    state: &mut TrackerState,
+    frame: &StereoFrame,
+    ctx: &TrackContext,
+    world_from_cam: Se3,
+) -> Option<FrameOutcome> {
+    let (id, count) = insert_keyframe(map, frame, world_from_cam, &[], ctx.calib, ctx.tri);
+    if count < ctx.cfg.init_min_points as usize {
+        remove_keyframe(map, id);
+        return None;
+    }
+    log::info!(
+        "tracking: t={} ns: neither tracked nor relocalised; new map segment (keyframe {id}, \
+         {count} points) at the constant-velocity pose",
+        frame.t_ns
+    );
+    let record = FrameRecord {
+        t_ns: frame.t_ns,
+        keyframe: id,
+        kf_from_cam: Se3::identity(),
+    };
+    map.trajectory.push(record);
+    state.last = Some(record);
+    state.reference = Some(id);
+    state.lost = false;
+    Some(FrameOutcome {
+        state: TrackState::Initialised,
+        world_from_cam,
+        inliers: count,
+        keyframe: Some(id),
+    })
+}
+
 /// Matches a frame against the local map around the prediction and refines its pose.
 pub fn track_local_map(
     map: &Map,
@@ -547,10 +584,14 @@ pub fn commit_tracked(
         (false, Some(prev)) => tracked.cam_from_world * prev,
         _ => Se3::identity(),
     };
-    let reference_tracked = state
-        .reference
-        .and_then(|r| map.keyframes.get(&r))
-        .map_or(0, |k| k.tracked);
+    let reference_tracked = match state.reference.and_then(|r| map.keyframes.get_mut(&r)) {
+        Some(k) if k.tracked == 0 => {
+            k.tracked = tracked.inliers;
+            tracked.inliers
+        }
+        Some(k) => k.tracked,
+        None => 0,
+    };
     let need_keyframe = relocalised
         || state
             .reference
@@ -572,6 +613,12 @@ pub fn commit_tracked(
             frame.t_ns,
             tracked.inliers
         );
+        // The keyframe's reference count is set by the first frame tracked after it (which
+        // sees the keyframe's new points too): comparing with the keyframe's own point count
+        // would make every frame a keyframe, comparing with what it matched almost none.
+        if let Some(kf) = map.keyframes.get_mut(&id) {
+            kf.tracked = 0;
+        }
         state.reference = Some(id);
         keyframe = Some(id);
     }
