@@ -70,7 +70,7 @@ def test_rust_reads_the_extractor_outputs_in_place(extracted: dict, name: str) -
     for array in (left.keypoints, left.scores, left.descriptors):
         assert array.flags.c_contiguous
         assert _core._buffer_address(array) == array.__array_interface__["data"][0]
-    assert _core._descriptor_address(left.descriptors) == left.descriptors.__array_interface__["data"][0]
+    assert _core._buffer_address(left.descriptors) == left.descriptors.__array_interface__["data"][0]
     # The check can fail: an array of another dtype is converted, so its address differs.
     as_f64 = left.keypoints.astype(np.float64)
     assert _core._buffer_address(as_f64) != as_f64.__array_interface__["data"][0]

@@ -69,7 +69,7 @@ def test_binary_matches_equal_the_reference() -> None:
 
 def test_descriptors_are_read_in_place_and_bad_arrays_are_named() -> None:
     d = _unit(np.random.default_rng(0), 10, 64)
-    assert _core._descriptor_address(d) == d.__array_interface__["data"][0]
+    assert _core._buffer_address(d) == d.__array_interface__["data"][0]
     with pytest.raises(InputError, match="query"):
         _core.match_descriptors(d.astype(np.float64), d, 1.0)
     with pytest.raises(InputError, match="non-contiguous"):

@@ -176,3 +176,16 @@ pub fn values_f32<'py>(
         .and_then(|c| c.extract().map_err(Into::into))
         .map_err(|_| input_error(name, "a 1-D float32 array", shape_of(obj)))
 }
+
+/// A short description of a Python object for error messages: dtype and shape of an array,
+/// else its type name.
+pub fn describe(obj: &Bound<'_, PyAny>) -> String {
+    match (obj.getattr("dtype"), obj.getattr("shape")) {
+        (Ok(d), Ok(s)) => format!("dtype {d}, shape {s}"),
+        _ => obj
+            .get_type()
+            .name()
+            .map(|n| n.to_string())
+            .unwrap_or_default(),
+    }
+}

@@ -77,7 +77,6 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(sim::sim_file_trajectory, m)?)?;
     m.add_function(wrap_pyfunction!(sim::sim_profile_segments, m)?)?;
     m.add_function(wrap_pyfunction!(matching::match_descriptors, m)?)?;
-    m.add_function(wrap_pyfunction!(matching::_descriptor_address, m)?)?;
     m.add_function(wrap_pyfunction!(matching::_buffer_address, m)?)?;
     m.add_function(wrap_pyfunction!(events::_e3ct, m)?)?;
     m.add_function(wrap_pyfunction!(events::_count_image, m)?)?;

@@ -99,13 +99,6 @@ pub fn match_descriptors<'py>(
     Ok((pairs.into_pyarray(py), distances.into_pyarray(py)))
 }
 
-/// Address of the first element of a descriptor array as the core reads it (tests compare it
-/// with numpy's own address to prove nothing was copied).
-#[pyfunction]
-pub fn _descriptor_address(array: &Bound<'_, PyAny>) -> PyResult<usize> {
-    Ok(DescriptorArray::extract(array, "array")?.address())
-}
-
 /// Address of the first element of a feature array as the binding reads it: uint8 (N, B)
 /// descriptors through [`DescriptorArray`], float32 (N, k) keypoints/descriptors and (N,)
 /// scores through `arrays::rows_f32` / `arrays::values_f32` (which convert anything else once,

@@ -21,22 +21,11 @@ fn keypoints<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArr
     let expected = "a C-contiguous (N, 2) float32 array";
     let a = obj
         .extract::<PyReadonlyArray2<'py, f32>>()
-        .map_err(|_| input_error(name, expected, describe(obj)))?;
+        .map_err(|_| input_error(name, expected, crate::arrays::describe(obj)))?;
     if !a.is_c_contiguous() || a.shape()[1] != 2 {
-        return Err(input_error(name, expected, describe(obj)));
+        return Err(input_error(name, expected, crate::arrays::describe(obj)));
     }
     Ok(a)
-}
-
-fn describe(obj: &Bound<'_, PyAny>) -> String {
-    match (obj.getattr("dtype"), obj.getattr("shape")) {
-        (Ok(d), Ok(s)) => format!("dtype {d}, shape {s}"),
-        _ => obj
-            .get_type()
-            .name()
-            .map(|n| n.to_string())
-            .unwrap_or_default(),
-    }
 }
 
 fn pose_array<'py>(py: Python<'py>, pose: &Se3) -> Bound<'py, PyArray2<f64>> {
