@@ -347,6 +347,7 @@ class EventRectifier:
         self, x: _U16, y: _U16, t_ns: _I64, p: _I8, t_start_ns: int, t_end_ns: int
     ) -> tuple[_U16, _U16, _I64, _I8]: ...
     def lookup(self, pixels: npt.NDArray[np.int64]) -> _FloatArray: ...
+
 def solve_pnp_ransac(
     points_world: _ArrayLike,
     pixels: _ArrayLike,
