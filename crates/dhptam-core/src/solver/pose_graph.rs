@@ -106,6 +106,33 @@ fn wrap_angle(a: f64) -> f64 {
     }
 }
 
+/// V(θ)⁻¹ of the SE(2) exponential, t = V(θ) v: with a = sin θ/θ and b = (1 − cos θ)/θ,
+/// V = [[a, −b], [b, a]] and V⁻¹ = [[a, b], [−b, a]] / (a² + b²); series near θ = 0.
+fn se2_v_inverse(theta: f64) -> Matrix2<f64> {
+    let (a, b) = if theta.abs() < 1e-6 {
+        let t2 = theta * theta;
+        (1.0 - t2 / 6.0, theta / 2.0 - theta * t2 / 24.0)
+    } else {
+        (theta.sin() / theta, (1.0 - theta.cos()) / theta)
+    };
+    Matrix2::new(a, b, -b, a) / (a * a + b * b)
+}
+
+/// Log of the SE(2) pose (t, θ): (V(θ)⁻¹ t, θ), with its 3×3 Jacobian with respect to (t, θ)
+/// (the θ column of V⁻¹ t by a central difference; V⁻¹ is smooth on (−2π, 2π)).
+fn se2_log_with_jacobian(t: &Vector2<f64>, theta: f64) -> (Vector3<f64>, SMatrix<f64, 3, 3>) {
+    let vinv = se2_v_inverse(theta);
+    let v = vinv * t;
+    let h = 1e-6;
+    let dv = (se2_v_inverse(theta + h) * t - se2_v_inverse(theta - h) * t) / (2.0 * h);
+    let mut j = SMatrix::<f64, 3, 3>::zeros();
+    j.fixed_view_mut::<2, 2>(0, 0).copy_from(&vinv);
+    j[(0, 2)] = dv.x;
+    j[(1, 2)] = dv.y;
+    j[(2, 2)] = 1.0;
+    (Vector3::new(v.x, v.y, theta), j)
+}
+
 fn rot2(theta: f64) -> Matrix2<f64> {
     let (s, c) = theta.sin_cos();
     Matrix2::new(c, -s, s, c)
@@ -132,8 +159,11 @@ impl GraphPose<3> for Pose2 {
         let rzt = rot2(z.theta).transpose();
         let rit = rot2(ti.theta).transpose();
         let dt = Vector2::new(tj.x - ti.x, tj.y - ti.y);
+        // The error pose E = z⁻¹·(Tᵢ⁻¹Tⱼ) as (t, θ), then its logarithm (V(θ)⁻¹ t, θ), as GTSAM's
+        // Pose2 BetweenFactor; the Jacobians below are those of (t, θ), chained through the
+        // logarithm's at the end.
         let exy = rzt * (rit * dt - Vector2::new(z.x, z.y));
-        let e = Vector3::new(exy.x, exy.y, wrap_angle(tj.theta - ti.theta - z.theta));
+        let theta = wrap_angle(tj.theta - ti.theta - z.theta);
         // ∂R(θ)ᵀ/∂θ = [[−s, c], [−c, −s]].
         let (s, c) = ti.theta.sin_cos();
         let drit = Matrix2::new(-s, c, -c, -s);
@@ -146,7 +176,8 @@ impl GraphPose<3> for Pose2 {
         ji[(2, 2)] = -1.0;
         jj.fixed_view_mut::<2, 2>(0, 0).copy_from(&a);
         jj[(2, 2)] = 1.0;
-        (e, ji, jj)
+        let (log, dlog) = se2_log_with_jacobian(&exy, theta);
+        (log, dlog * ji, dlog * jj)
     }
 
     fn norm_squared(&self) -> f64 {
