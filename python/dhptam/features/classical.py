@@ -13,6 +13,7 @@ pair are processed one after the other (OpenCV parallelises inside each call).
 
 from __future__ import annotations
 
+import abc
 from typing import Any
 
 import cv2
@@ -36,8 +37,9 @@ class _OpenCVExtractor(Extractor):
             cv2.setNumThreads(int(threads))
         self._detector = self._create()
 
+    @abc.abstractmethod
     def _create(self) -> Any:
-        raise NotImplementedError
+        """The OpenCV detector-descriptor object (ORB or SIFT) this extractor runs."""
 
     def _descriptors(self, raw: npt.NDArray[Any]) -> npt.NDArray[Any]:
         return raw
