@@ -352,6 +352,46 @@ def _add_demo_command(sub: Any) -> None:
     p.set_defaults(func=_demo_command)
 
 
+# -- dhptam convert (issue 9) -------------------------------------------------------------------
+
+
+def _convert_command(args: argparse.Namespace) -> int:
+    from .convert import convert
+
+    out = convert(
+        args.src,
+        args.dst,
+        from_format=args.from_format,
+        to_format=args.to_format,
+        start_s=args.start,
+        duration_s=args.duration,
+        calibration=args.calibration,
+        progress=not args.quiet,
+    )
+    sys.stdout.write(f"{out}\n")
+    return 0
+
+
+def _add_convert_command(sub: Any) -> None:
+    from .convert import WRITERS
+    from .datasets.loaders import FORMATS
+
+    p = sub.add_parser(
+        "convert",
+        help="convert a sequence between formats (VECtor, MVSEC, EuRoC, ROS bag → TUM-VIE, ...)",
+        description="Read SRC in the --from format and write DST in the --to format, atomically.",
+    )
+    p.add_argument("--from", dest="from_format", required=True, choices=list(FORMATS), help="input format")
+    p.add_argument("--to", dest="to_format", default="tum-vie", choices=list(WRITERS), help="output format")
+    p.add_argument("src", metavar="SRC", help="input sequence (folder or file)")
+    p.add_argument("dst", metavar="DST", help="output path (must not exist)")
+    p.add_argument("--start", type=float, metavar="S", help="skip S seconds after the first frame")
+    p.add_argument("--duration", type=float, metavar="S", help="keep S seconds")
+    p.add_argument("--calibration", metavar="PATH", help="calibration file or folder of the input")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_convert_command)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``dhptam`` command."""
     parser = argparse.ArgumentParser(
@@ -381,6 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_solve_parser(sub)
     _add_eval_command(sub)
     _add_calibrate_align_command(sub)
+    _add_convert_command(sub)
     return parser
 
 

@@ -38,7 +38,7 @@ from .errors import InputError
 
 log = logging.getLogger(__name__)
 
-FORMATS = ("tum-vie",)
+FORMATS = ("tum-vie", "vector", "vector-bag", "mvsec", "euroc")  # dhptam.datasets.FORMATS
 MODES = ("fusion", "frames", "events")
 FEATURES = ("orb", "sift", "r2d2", "superpoint")
 STAGES = ("frontend", "extraction", "tracking")
@@ -203,9 +203,9 @@ def _load_sequence(sequence: str | Path, fmt: str, calibration: str | Path | Non
         raise InputError(
             f"unknown sequence format {fmt!r}; choose one of {', '.join(FORMATS)}", field="format"
         )
-    from .datasets import load_tumvie
+    from .datasets import load
 
-    return load_tumvie(sequence, calibration=calibration)
+    return load(fmt, sequence, calibration=calibration)
 
 
 def _progress(total: int, enabled: bool, desc: str) -> Any:

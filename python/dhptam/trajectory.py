@@ -220,11 +220,86 @@ def read_tum(path: str | Path) -> tuple[npt.NDArray[np.int64], _F64]:
     return np.asarray(times, np.int64), np.asarray(rows, np.float64)
 
 
+# -- KITTI and EuRoC trajectory files (issue 9) --------------------------------------------------
+
+
+def _checked(t_ns: npt.ArrayLike, poses: npt.ArrayLike) -> tuple[npt.NDArray[np.int64], _F64]:
+    times = np.asarray(t_ns)
+    if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
+        raise InputError(
+            f"t_ns must be a 1-D integer array (nanoseconds), got {times.dtype} {times.shape}", field="t_ns"
+        )
+    rows = poses_to_rows(poses)
+    if rows.shape[0] != times.shape[0]:
+        raise InputError(f"{times.shape[0]} times but {rows.shape[0]} poses", field="poses")
+    if times.size > 1 and np.any(np.diff(times) <= 0):
+        k = int(np.argmax(np.diff(times) <= 0)) + 1
+        raise InputError(f"t_ns must increase strictly; pose {k} is not after pose {k - 1}", field="t_ns")
+    if not np.all(np.isfinite(rows)):
+        k = int(np.argmax(~np.all(np.isfinite(rows), axis=1)))
+        raise InputError(f"pose {k} is not finite: {rows[k].tolist()}", field="poses")
+    return times.astype(np.int64), rows
+
+
+def write_kitti(path: str | Path, poses: npt.ArrayLike) -> None:
+    """Writes a KITTI odometry trajectory atomically: one line per pose, the top 3x4 of the
+    ``world_from_cam`` matrix row-major (12 numbers), no times and no comments (KITTI has
+    neither; pair it with the TUM or EuRoC file for times)."""
+    rows = poses_to_rows(poses)
+    if not np.all(np.isfinite(rows)):
+        raise InputError("poses hold NaN or infinity", field="poses")
+    mats = rows_to_matrices(rows) if rows.shape[0] else np.empty((0, 4, 4))
+    lines = [" ".join(f"{v:.9e}" for v in m[:3].reshape(-1)) for m in mats]
+    atomic_write_text(path, "\n".join(lines) + ("\n" if lines else ""))
+
+
+EUROC_HEADER = (
+    "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
+)
+"""Header of a EuRoC ground-truth style CSV (quaternion w first, as EuRoC writes it)."""
+
+
+def write_euroc(path: str | Path, t_ns: npt.ArrayLike, poses: npt.ArrayLike) -> None:
+    """Writes a EuRoC CSV trajectory atomically: integer ns, position, quaternion **w x y z**
+    (EuRoC's order; dhptam's rows are x y z w and are reordered here)."""
+    times, rows = _checked(t_ns, poses)
+    lines = [EUROC_HEADER]
+    for t, r in zip(times.tolist(), rows, strict=True):
+        values = (r[0], r[1], r[2], r[6], r[3], r[4], r[5])
+        lines.append(f"{t}," + ",".join(f"{v:.9f}" for v in values))
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+TRAJECTORY_FORMATS = ("tum", "kitti", "euroc")
+"""Formats :func:`write_trajectory` writes (and evo reads: ``evo_traj tum|kitti|euroc``)."""
+
+
+def write_trajectory(path: str | Path, fmt: str, t_ns: npt.ArrayLike, poses: npt.ArrayLike) -> None:
+    """Writes a frame or keyframe trajectory in one of :data:`TRAJECTORY_FORMATS`."""
+    if fmt == "tum":
+        write_tum(path, t_ns, poses)
+    elif fmt == "kitti":
+        _checked(t_ns, poses)
+        write_kitti(path, poses)
+    elif fmt == "euroc":
+        write_euroc(path, t_ns, poses)
+    else:
+        raise InputError(
+            f"unknown trajectory format {fmt!r}; choose one of {', '.join(TRAJECTORY_FORMATS)}",
+            field="format",
+        )
+
+
 __all__ = [
+    "EUROC_HEADER",
+    "TRAJECTORY_FORMATS",
     "atomic_write_bytes",
     "atomic_write_text",
     "poses_to_rows",
     "read_tum",
     "rows_to_matrices",
+    "write_euroc",
+    "write_kitti",
+    "write_trajectory",
     "write_tum",
 ]

@@ -3,7 +3,9 @@
 A :class:`Sequence` bundles a rig calibration, stereo frame pairs (decoded lazily), one
 :class:`EventSource` per event camera (random access by time window) and the left frame
 camera's ground truth. :func:`load_tumvie` reads the real TUM-VIE layout; :class:`TumVieWriter`
-writes it (the simulator's output format).
+writes it (the simulator's output format). :func:`load` opens any supported format by name
+(:data:`FORMATS`: TUM-VIE, VECtor folders and ROS bags, MVSEC, EuRoC); Kalibr camchain files
+give a :class:`RigCalibration` through :func:`rig_from_kalibr`.
 
 Example: write a tiny sequence and read an event window back::
 
@@ -24,10 +26,16 @@ Example: write a tiny sequence and read an event window back::
 
 from __future__ import annotations
 
+# -- other datasets (issue 9) -------------------------------------------------------------------
+from .euroc import load_euroc
+from .kalibr import KalibrCamera, read_kalibr_camchain, rig_from_kalibr
+from .loaders import FORMATS, load
+from .mvsec import load_mvsec
 from .sequence import (
     CAMERA_KEYS,
     EVENT_SIDES,
     EventSource,
+    EventStream,
     EventWindow,
     FramePair,
     Frames,
@@ -36,20 +44,31 @@ from .sequence import (
     Sequence,
 )
 from .tumvie import TumVieWriter, compose_poses, load_tumvie, read_basalt_calibration, read_mocap_calibration
+from .vector import load_vector, read_vector_calibration
 
 __all__ = [
     "CAMERA_KEYS",
     "EVENT_SIDES",
+    "FORMATS",
     "EventSource",
+    "EventStream",
     "EventWindow",
     "FramePair",
     "Frames",
     "GroundTruth",
+    "KalibrCamera",
     "RigCalibration",
     "Sequence",
     "TumVieWriter",
     "compose_poses",
+    "load",
+    "load_euroc",
+    "load_mvsec",
     "load_tumvie",
+    "load_vector",
     "read_basalt_calibration",
+    "read_kalibr_camchain",
     "read_mocap_calibration",
+    "read_vector_calibration",
+    "rig_from_kalibr",
 ]

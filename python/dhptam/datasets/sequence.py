@@ -37,10 +37,10 @@ rather than silently giving wrong windows.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
@@ -127,6 +127,50 @@ class GroundTruth:
         return int(self.t_ns.shape[0])
 
 
+@runtime_checkable
+class EventStream(Protocol):
+    """What a :class:`Sequence` needs from the events of one camera, whatever the file format.
+
+    :class:`EventSource` (DSEC/TUM-VIE/VECtor HDF5) implements it, and so do the MVSEC and ROS
+    bag readers of :mod:`dhptam.datasets`. Times are ``int64`` ns on the sequence's clock;
+    windows are half-open ``[t0, t1)`` and sorted by time; indices count events in file order.
+    Implementations keep memory proportional to the window read, never to the recording.
+    """
+
+    def __len__(self) -> int: ...
+
+    @property
+    def t_range_ns(self) -> tuple[int, int]:
+        """``[first, last + 1)`` of the event times; ``(0, 0)`` when there are none."""
+        ...
+
+    def window(self, t0_ns: int, t1_ns: int) -> EventWindow:
+        """The events with ``t0_ns <= t < t1_ns``."""
+        ...
+
+    def index_range(self, t0_ns: int, t1_ns: int) -> tuple[int, int]:
+        """Indices ``[i0, i1)`` of the events with ``t0_ns <= t < t1_ns``."""
+        ...
+
+    def slice(self, i0: int, i1: int) -> EventWindow:
+        """Events ``i0 .. i1 - 1`` in file order."""
+        ...
+
+    def iter_windows(
+        self, step_ns: int, t0_ns: int | None = None, t1_ns: int | None = None
+    ) -> Iterator[EventWindow]:
+        """Consecutive windows of ``step_ns`` covering ``[t0_ns, t1_ns)`` (default: all)."""
+        ...
+
+    def close(self) -> None:
+        """Release the file."""
+        ...
+
+    def __enter__(self) -> EventStream: ...
+
+    def __exit__(self, *exc: object) -> None: ...
+
+
 class Frames:
     """Stereo frame pairs in time order; images are decoded from disk on access.
 
@@ -176,13 +220,17 @@ class Frames:
             index=i,
             t_ns=int(self.t_ns[i]),
             exposure_ns=int(self.exposure_ns[i]),
-            left=self._read(self.left_paths[i], "left"),
-            right=self._read(self.right_paths[i], "right"),
+            left=self._image(i, "left"),
+            right=self._image(i, "right"),
         )
 
     def __iter__(self) -> Iterator[FramePair]:
         for i in range(len(self)):
             yield self[i]
+
+    def _image(self, i: int, side: str) -> npt.NDArray[np.uint8]:
+        """Image ``i`` of one side; readers whose images are not files (ROS bags) override it."""
+        return self._read((self.left_paths if side == "left" else self.right_paths)[i], side)
 
     def _read(self, path: Path, side: str) -> npt.NDArray[np.uint8]:
         import cv2
@@ -483,7 +531,10 @@ def _empty_window() -> EventWindow:
 
 
 class Sequence:
-    """A recording: calibration, stereo frames, event sources and optional ground truth.
+    """A recording: calibration, stereo frames, event streams and optional ground truth.
+
+    ``events`` maps ``"left"``/``"right"`` to any :class:`EventStream`; it is empty for a
+    frames-only recording (EuRoC), which only the ``frames`` mode can run.
 
     Close it (or use it as a context manager) to release the event files.
     """
@@ -494,22 +545,29 @@ class Sequence:
         path: Path,
         calibration: RigCalibration,
         frames: Frames,
-        events: dict[str, EventSource],
+        events: Mapping[str, EventStream],
         ground_truth: GroundTruth | None,
         imu_from_marker: SE3 | None = None,
+        *,
+        on_close: Callable[[], None] | None = None,
     ) -> None:
         self.name = name
         self.path = path
         self.calibration = calibration
         self.frames = frames
-        self.events = events
+        self.events: dict[str, EventStream] = dict(events)
         self.ground_truth = ground_truth
         self.imu_from_marker = imu_from_marker
+        # Releases what the reader holds besides the event streams (a shared HDF5 file, a bag).
+        self._on_close = on_close
 
     def close(self) -> None:
-        """Close the event files."""
+        """Close the event files (and whatever else the reader keeps open)."""
         for source in self.events.values():
             source.close()
+        if self._on_close is not None:
+            self._on_close()
+            self._on_close = None
 
     def __enter__(self) -> Sequence:
         return self
@@ -529,6 +587,7 @@ __all__ = [
     "CAMERA_KEYS",
     "EVENT_SIDES",
     "EventSource",
+    "EventStream",
     "EventWindow",
     "FramePair",
     "Frames",
