@@ -14,7 +14,9 @@ Writing TUM-VIE
 The rig is written as Basalt JSON; ground truth becomes ``mocap_data.txt`` with the left frame
 camera as the "marker" (``T_imu_marker = T_imu_cam[frame_left]``), so that reading it back gives
 the same ``world_from_cam``. Event times are stored in whole microseconds (TUM-VIE's unit),
-rounded down; frames are re-encoded as JPEG (quality :data:`~dhptam.datasets.tumvie.JPEG_QUALITY`).
+rounded down, relative to a ``/t_offset`` of whole seconds (DSEC convention) so that
+``/ms_to_idx`` stays short for Unix-time stamps; frames are re-encoded as JPEG (quality
+:data:`~dhptam.datasets.tumvie.JPEG_QUALITY`).
 """
 
 from __future__ import annotations
@@ -54,7 +56,12 @@ def _write_tumvie(sequence: Any, dst: Path, t0: int, t1: int, progress: Any) -> 
     frames = sequence.frames
     keep = np.nonzero((frames.t_ns >= t0) & (frames.t_ns < t1))[0]
     streams = {side: sequence.events[side] for side in ("left", "right") if side in sequence.events}
-    with TumVieWriter(dst.parent, dst.name, rig, rig.imu_from_cam["frame_left"]) as writer:
+    starts = [max(s.t_range_ns[0], t0) for s in streams.values() if len(s)]
+    # Whole seconds before the first event written: stored event times stay small (module doc).
+    offset_us = max(0, min(starts) // 1_000_000_000 * 1_000_000) if starts else 0
+    with TumVieWriter(
+        dst.parent, dst.name, rig, rig.imu_from_cam["frame_left"], event_t_offset_us=offset_us
+    ) as writer:
         for k in keep:
             pair = frames[int(k)]
             writer.add_frame_pair(pair.t_ns, pair.exposure_ns, pair.left, pair.right)

@@ -564,11 +564,14 @@ def _load_ground_truth(
 class _EventFileWriter:
     """Appends sorted event chunks to one HDF5 file and keeps ``/ms_to_idx`` up to date."""
 
-    def __init__(self, path: Path, width: int, height: int) -> None:
+    def __init__(self, path: Path, width: int, height: int, t_offset_us: int = 0) -> None:
         import h5py
         import hdf5plugin
 
         self.path = path
+        # DSEC's /t_offset: stored times are t - t_offset, so that /ms_to_idx, which counts ms
+        # from stored t = 0, stays short for recordings stamped in Unix time.
+        self.t_offset_us = int(t_offset_us)
         self.width, self.height = width, height
         self.file: Any = h5py.File(path, "w")
         compression = hdf5plugin.Blosc(cname="zstd", clevel=1, shuffle=hdf5plugin.Blosc.SHUFFLE)
@@ -578,6 +581,8 @@ class _EventFileWriter:
             self.dsets[name] = group.create_dataset(
                 name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(EVENT_CHUNK,), **compression
             )
+        if self.t_offset_us:
+            self.file.create_dataset("t_offset", data=np.int64(self.t_offset_us))
         self.index = self.file.create_dataset(
             "ms_to_idx", shape=(0,), maxshape=(None,), dtype=np.uint64, chunks=(EVENT_CHUNK,), **compression
         )
@@ -611,10 +616,11 @@ class _EventFileWriter:
         if not np.all((p == 0) | (p == 1)):
             raise InputError(f"add_events({side!r}): p must be 0 or 1", field="p")
         # Whole µs, rounded down: a monotone map, so sorted input stays sorted.
-        t_us = t_ns.astype(np.int64) // 1000
+        t_us = t_ns.astype(np.int64) // 1000 - self.t_offset_us
         if t_us[0] < 0:
             raise InputError(
-                f"add_events({side!r}): negative time {int(t_ns[0])} ns (/ms_to_idx counts ms from t = 0)",
+                f"add_events({side!r}): time {int(t_ns[0])} ns is before the file's t_offset "
+                f"{self.t_offset_us} µs (/ms_to_idx counts ms from stored t = 0)",
                 field="t_ns",
             )
         if np.any(np.diff(t_ns.astype(np.int64)) < 0) or (self.count and t_us[0] < self.last_t_us):
@@ -674,6 +680,10 @@ class TumVieWriter:
         ``T_mocap_world`` the identity (mocap poses are given in the world frame).
     overwrite
         Replace an existing ``out_dir / name`` on :meth:`close` (otherwise an error, raised now).
+    event_t_offset_us
+        Written as ``/t_offset`` of the event files (DSEC convention, read back by
+        :class:`~dhptam.datasets.EventSource`); events are stored as ``t - t_offset``. Use a
+        whole second near the first event for recordings stamped in Unix time. Default 0.
 
     Notes
     -----
@@ -690,6 +700,7 @@ class TumVieWriter:
         imu_from_marker: SE3,
         *,
         overwrite: bool = False,
+        event_t_offset_us: int = 0,
     ) -> None:
         if not name or "/" in name or os.sep in name or name.startswith("."):
             raise InputError(f"invalid sequence name {name!r}", field="name")
@@ -721,7 +732,7 @@ class TumVieWriter:
             for side in EVENT_SIDES:
                 cam = calibration.cameras[f"event_{side}"]
                 self._events[side] = _EventFileWriter(
-                    self.tmp_dir / f"{name}-events_{side}.h5", cam.width, cam.height
+                    self.tmp_dir / f"{name}-events_{side}.h5", cam.width, cam.height, event_t_offset_us
                 )
         except BaseException:
             self.abort()

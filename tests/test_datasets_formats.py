@@ -1,0 +1,326 @@
+"""VECtor (folder and ROS bag), MVSEC, EuRoC readers and Kalibr import, on fixtures written in
+the real layouts by tests/dataset_layouts.py."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from dataset_layouts import (
+    BAD_EVENT,
+    BODY_FROM_CAM0,
+    CAM0_FROM,
+    D,
+    K,
+    kalibr_camchain,
+    matrix_from_row,
+    write_euroc,
+    write_mvsec,
+    write_vector,
+    write_vector_bag,
+    write_vector_calibration,
+)
+
+from dhptam.datasets import (
+    EventSource,
+    EventStream,
+    load,
+    load_mvsec,
+    load_vector,
+    read_kalibr_camchain,
+    rig_from_kalibr,
+)
+from dhptam.datasets.mvsec import MvsecEventSource
+from dhptam.datasets.rosbag import BagEventStream, load_vector_bag
+from dhptam.errors import FileError, InputError, ParseError
+
+
+def truth_window(ev: dict[str, np.ndarray], offset_us: int, t0: int, t1: int) -> dict[str, np.ndarray]:
+    t_ns = (ev["t"] + offset_us) * 1000
+    sel = (t_ns >= t0) & (t_ns < t1)
+    return {"x": ev["x"][sel], "y": ev["y"][sel], "t_ns": t_ns[sel], "p": ev["p"][sel].astype(np.int8)}
+
+
+def assert_window(window: object, want: dict[str, np.ndarray]) -> None:
+    for key in ("x", "y", "t_ns", "p"):
+        np.testing.assert_array_equal(getattr(window, key), want[key], err_msg=key)
+
+
+def assert_poses(rows: np.ndarray, mats: list[np.ndarray]) -> None:
+    assert len(rows) == len(mats)
+    for row, m in zip(rows, mats, strict=True):
+        np.testing.assert_allclose(matrix_from_row(row), m, atol=1e-9)
+
+
+@pytest.fixture
+def vector(tmp_path: Path, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+    return write_vector(tmp_path / "corner_slow1", rng)
+
+
+# -- VECtor folder ----------------------------------------------------------------------------------
+
+
+def test_vector_events_frames_and_ground_truth(vector) -> None:  # type: ignore[no-untyped-def]
+    # The fixture really uses zstd (HDF5 filter 32015), as VECtor ships.
+    with h5py.File(vector.folder / f"{vector.name}.synced.left_event.hdf5") as f:
+        assert "32015" in f["events/t"]._filters
+    with load_vector(vector.folder) as seq:
+        assert isinstance(seq.events["left"], EventSource)
+        assert isinstance(seq.events["left"], EventStream)
+        off = vector.t_offset_us
+        t0 = (off + 300_000) * 1000 + 500
+        t1 = (off + 1_250_000) * 1000
+        for side in ("left", "right"):
+            assert_window(seq.events[side].window(t0, t1), truth_window(vector.events[side], off, t0, t1))
+            assert len(seq.events[side]) == len(vector.events[side]["t"])
+        # Frames: start of exposure and exposure exactly from decimal seconds.
+        assert len(seq.frames) == 10
+        assert seq.frames.t_ns[0] == (off + 50_000) * 1000
+        assert np.all(seq.frames.exposure_ns == 3_250_500)
+        pair = seq.frames[3]
+        np.testing.assert_array_equal(pair.left, vector.images["left"][3])
+        np.testing.assert_array_equal(pair.right, vector.images["right"][3])
+        # Calibration: plumb-bob → radtan with OpenCV order, joint extrinsics in cam0's frame.
+        cam = seq.calibration.cameras["event_left"]
+        assert cam.model == "radtan"
+        np.testing.assert_allclose(cam.params, [*K[2], *D[2]])
+        np.testing.assert_allclose(
+            seq.calibration.cam_from_cam("frame_left", "event_right").matrix(), CAM0_FROM[3], atol=1e-9
+        )
+        # Body-frame chain: world_from_cam = world_from_body · body_from_cam0 (cam0 = frame_left).
+        gt = seq.ground_truth
+        assert gt is not None
+        np.testing.assert_array_equal(gt.t_ns, vector.gt_t_ns)
+        assert_poses(gt.world_from_cam, [m @ BODY_FROM_CAM0 for m in vector.world_from_body])
+
+
+def test_vector_camera_order_moves_the_ground_truth(vector) -> None:  # type: ignore[no-untyped-def]
+    # With cam1 declared the left frame camera, the chain picks up cam0_from_cam1.
+    order = ("frame_right", "frame_left", "event_left", "event_right")
+    with load_vector(vector.folder, camera_order=order) as seq:
+        assert seq.ground_truth is not None
+        want = [m @ BODY_FROM_CAM0 @ CAM0_FROM[1] for m in vector.world_from_body]
+        assert_poses(seq.ground_truth.world_from_cam, want)
+
+
+def test_vector_missing_extrinsics_entry_names_file_and_field(vector) -> None:  # type: ignore[no-untyped-def]
+    calib = vector.folder / "calibration"
+    shutil.rmtree(calib)
+    write_vector_calibration(calib, drop_cam=2)
+    with pytest.raises(ParseError, match=r"cam2\.T_cam0_cam2 is missing") as err:
+        load_vector(vector.folder)
+    assert err.value.field == "cam2.T_cam0_cam2"
+    assert err.value.path is not None and err.value.path.endswith("joint_camera_extrinsic_results.yaml")
+
+
+def test_vector_bad_distortion_model_and_missing_body(vector) -> None:  # type: ignore[no-untyped-def]
+    calib = vector.folder / "calibration"
+    (calib / "camera_body_extrinsic_results.yaml").unlink()
+    with pytest.raises(FileError, match="T_body_cam0"):
+        load_vector(vector.folder)
+    path = calib / "left_event_camera_intrinsic_results.yaml"
+    path.write_text(path.read_text().replace("plumb_bob", "equidistant"))
+    with pytest.raises(InputError, match="distortion_model 'equidistant'") as err:
+        load_vector(vector.folder)
+    assert err.value.path == str(path)
+
+
+def test_vector_frame_count_and_timestamp_errors(vector) -> None:  # type: ignore[no-untyped-def]
+    ts = vector.folder / f"{vector.name}.synced.right_camera" / "timestamp.txt"
+    lines = ts.read_text().splitlines()
+    lines[5] = lines[5].split()[0] + " 12.5"  # ends before it starts
+    ts.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ParseError, match="exposure ends before it starts") as err:
+        load_vector(vector.folder)
+    assert err.value.line == 6
+    (vector.folder / f"{vector.name}.synced.left_camera" / "000004.png").unlink()
+    with pytest.raises(InputError, match="9 PNG images"):
+        load_vector(vector.folder)
+
+
+def test_vector_event_file_with_wrong_layout_names_file_and_field(vector) -> None:  # type: ignore[no-untyped-def]
+    path = vector.folder / f"{vector.name}.synced.left_event.hdf5"
+    with h5py.File(path, "a") as f:
+        t = f["events/t"][:]
+        del f["events/t"]
+        f.create_dataset("events/t", data=t.astype(np.float64) * 1e-6)  # seconds, not µs
+    with pytest.raises(ParseError, match="/events/t has dtype float64") as err:
+        load_vector(vector.folder)
+    assert err.value.path == str(path) and err.value.field == "events/t"
+
+
+# -- VECtor bag -----------------------------------------------------------------------------------------
+
+
+def test_vector_bag_matches_the_truth(vector, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    bag = tmp_path / "corner_slow1.synced.merged.bag"
+    write_vector_bag(bag, vector)
+    with load_vector_bag(bag, calibration=vector.folder / "calibration") as seq:
+        stream = seq.events["right"]
+        assert isinstance(stream, BagEventStream) and isinstance(stream, EventStream)
+        off = vector.t_offset_us
+        assert len(stream) == len(vector.events["right"]["t"])
+        for a_us, b_us in ((0, 10), (123_456, 987_001), (1_500_000, 3_000_000), (-5, 1)):
+            t0, t1 = (off + a_us) * 1000, (off + b_us) * 1000 + 1
+            assert_window(stream.window(t0, t1), truth_window(vector.events["right"], off, t0, t1))
+        total = sum(len(w) for w in stream.iter_windows(70_000_000))
+        assert total == len(stream)
+        i0, i1 = stream.index_range((off + 400_000) * 1000, (off + 800_000) * 1000)
+        assert_window(
+            stream.slice(i0, i1),
+            truth_window(vector.events["right"], off, (off + 400_000) * 1000, (off + 800_000) * 1000),
+        )
+        assert len(seq.frames) == 10
+        np.testing.assert_array_equal(seq.frames[7].left, vector.images["left"][7])
+        np.testing.assert_array_equal(seq.frames[7].right, vector.images["right"][7])
+        assert seq.frames.t_ns[0] == (off + 50_000) * 1000
+        assert seq.ground_truth is not None
+        assert_poses(seq.ground_truth.world_from_cam, [m @ BODY_FROM_CAM0 for m in vector.world_from_body])
+    # The generic entry point finds the calibration folder beside the bag.
+    shutil.copytree(vector.folder / "calibration", tmp_path / "calibration")
+    with load("vector-bag", bag) as seq:
+        assert len(seq.events["left"]) == len(vector.events["left"]["t"])
+
+
+def test_vector_bag_missing_topic_and_bad_definition(vector, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    calib = vector.folder / "calibration"
+    bag = tmp_path / "a.bag"
+    write_vector_bag(bag, vector, skip_topics=("/prophesee/left/events",))
+    with pytest.raises(ParseError, match="topic /prophesee/left/events is missing") as err:
+        load_vector_bag(bag, calibration=calib)
+    assert err.value.path == str(bag) and err.value.field == "/prophesee/left/events"
+    bad = tmp_path / "b.bag"
+    write_vector_bag(bad, vector, event_def=BAD_EVENT, per_message=5000)
+    with pytest.raises(ParseError, match="int32") as err:
+        load_vector_bag(bad, calibration=calib)
+    assert err.value.field == "/prophesee/left/events.events"
+
+
+def test_unindexed_bag_is_refused_with_the_file_named(vector, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    bag = tmp_path / "c.bag"
+    write_vector_bag(bag, vector, compress=False)
+    raw = bytearray(bag.read_bytes())
+    at = raw.index(b"index_pos=") + len(b"index_pos=")
+    raw[at : at + 8] = bytes(8)  # what a recording cut before `rosbag record` wrote its index looks like
+    bag.write_bytes(bytes(raw))
+    with pytest.raises(FileError, match="not indexed") as err:
+        load_vector_bag(bag, calibration=vector.folder / "calibration")
+    assert err.value.path == str(bag)
+
+
+# -- MVSEC ------------------------------------------------------------------------------------------------
+
+
+def test_mvsec_units_polarity_pairing_and_pose(tmp_path: Path, rng: np.random.Generator) -> None:
+    truth = write_mvsec(tmp_path, rng)
+    with load("mvsec", tmp_path) as seq:
+        left = seq.events["left"]
+        assert isinstance(left, MvsecEventSource) and isinstance(left, EventStream)
+        ev = truth.events["left"]
+        t_ns = np.rint(ev[:, 2] * 1e6).astype(np.int64) * 1000
+        t0, t1 = int(t_ns[1000]), int(t_ns[9000])
+        w = left.window(t0, t1)
+        sel = (t_ns >= t0) & (t_ns < t1)
+        np.testing.assert_array_equal(w.t_ns, t_ns[sel])
+        np.testing.assert_array_equal(w.x, ev[sel, 0].astype(np.uint16))
+        np.testing.assert_array_equal(w.p, (ev[sel, 3] > 0).astype(np.int8))
+        assert set(np.unique(w.p)) == {0, 1}
+        # Stamps are seconds of Unix time: rounded to the microsecond, in ns.
+        assert seq.frames.t_ns[0] == round(truth.image_ts["left"][0] * 1e6) * 1000
+        assert len(seq.frames) == 12  # right frames 7 µs later still pair
+        np.testing.assert_array_equal(seq.frames[5].right, truth.images["right"][5])
+        assert seq.ground_truth is not None
+        assert_poses(seq.ground_truth.world_from_cam, list(truth.poses))
+        # A DAVIS: frame and event cameras are one; Kalibr's equidistant is kb4.
+        assert seq.calibration.cameras["event_left"].model == "kb4"
+        np.testing.assert_allclose(
+            seq.calibration.cam_from_cam("frame_right", "frame_left").matrix(),
+            np.linalg.inv(CAM0_FROM[1]),
+            atol=1e-9,
+        )
+
+
+def test_mvsec_bad_polarity_and_missing_dataset(tmp_path: Path, rng: np.random.Generator) -> None:
+    truth = write_mvsec(tmp_path, rng)
+    with h5py.File(truth.data, "a") as f:
+        d = f["davis/right/events"]
+        d[10, 3] = 0.0
+        del f["davis/left/image_raw_ts"]
+    with pytest.raises(ParseError, match="image_raw_ts is missing") as err:
+        load_mvsec(truth.data)
+    assert err.value.field == "davis/left/image_raw_ts"
+    stream = MvsecEventSource(truth.data, "right")
+    with stream, pytest.raises(ParseError, match="-1/\\+1"):
+        stream.slice(0, 100)
+
+
+# -- EuRoC --------------------------------------------------------------------------------------------------
+
+
+def test_euroc_frames_and_ground_truth(tmp_path: Path, rng: np.random.Generator) -> None:
+    truth = write_euroc(tmp_path / "MH_01_easy", rng)
+    with load("euroc", tmp_path / "MH_01_easy") as seq:
+        assert seq.events == {}
+        np.testing.assert_array_equal(seq.frames.t_ns, truth["t"])
+        np.testing.assert_array_equal(seq.frames[2].right, truth["images"]["right"][2])
+        # T_BS is body_from_cam; the rig frame is the body.
+        np.testing.assert_allclose(
+            seq.calibration.imu_from_cam["frame_left"].matrix(), BODY_FROM_CAM0, atol=1e-9
+        )
+        assert seq.ground_truth is not None
+        assert_poses(seq.ground_truth.world_from_cam, [m @ BODY_FROM_CAM0 for m in truth["world_from_body"]])
+    with pytest.raises(InputError, match="carry their calibration"):
+        load("euroc", tmp_path / "MH_01_easy", calibration="x.yaml")
+
+
+def test_load_rejects_an_unknown_format(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="unknown sequence format 'rosbag2'") as err:
+        load("rosbag2", tmp_path)
+    assert err.value.field == "format"
+
+
+# -- Kalibr ---------------------------------------------------------------------------------------
+
+
+def test_kalibr_conventions(tmp_path: Path) -> None:
+    path = tmp_path / "camchain-imucam.yaml"
+    path.write_text(kalibr_camchain(with_imu=True, model="radtan"))
+    chain = read_kalibr_camchain(path)
+    cam0 = chain["cam0"].camera
+    assert cam0.model == "radtan"
+    # Kalibr radtan [k1, k2, r1, r2] → OpenCV [k1, k2, p1, p2, k3 = 0].
+    np.testing.assert_allclose(cam0.params, [*K[0], -0.048, 0.012, -0.024, 0.008, 0.0])
+    assert chain["cam0"].cam_from_previous_cam is None and chain["cam0"].rostopic == "/davis/left/image_raw"
+    rig, _ = rig_from_kalibr(path)
+    # With T_cam_imu the rig frame is the IMU (here the body): imu_from_cam = inverse(T_cam_imu).
+    np.testing.assert_allclose(rig.imu_from_cam["frame_left"].matrix(), BODY_FROM_CAM0, atol=1e-9)
+    np.testing.assert_allclose(
+        rig.imu_from_cam["frame_right"].matrix(), BODY_FROM_CAM0 @ CAM0_FROM[1], atol=1e-9
+    )
+    # Without it, T_cn_cnm1 (cam1_from_cam0) places cam1 in cam0's frame: the same relative pose.
+    path.write_text(kalibr_camchain(with_imu=False))
+    rig2, _ = rig_from_kalibr(path)
+    np.testing.assert_allclose(rig2.imu_from_cam["frame_left"].matrix(), np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(rig2.imu_from_cam["frame_right"].matrix(), CAM0_FROM[1], atol=1e-9)
+    assert rig2.cameras["frame_left"].model == "kb4"
+
+
+def test_kalibr_errors_name_the_field(tmp_path: Path) -> None:
+    path = tmp_path / "camchain.yaml"
+    path.write_text(kalibr_camchain(with_imu=False).replace("T_cn_cnm1", "T_other"))
+    with pytest.raises(ParseError, match=r"cam1\.T_cn_cnm1 is missing") as err:
+        rig_from_kalibr(path)
+    assert err.value.field == "cam1.T_cn_cnm1"
+    path.write_text(kalibr_camchain().replace("camera_model: pinhole", "camera_model: omni", 1))
+    with pytest.raises(InputError, match=r"cam0\.camera_model 'omni'"):
+        read_kalibr_camchain(path)
+    path.write_text(kalibr_camchain().replace("cam0:", "cam5:"))
+    with pytest.raises(ParseError, match="missing cam0"):
+        read_kalibr_camchain(path)
+    path.write_text("cam0: [unclosed\n")
+    with pytest.raises(ParseError, match="invalid YAML") as err:
+        read_kalibr_camchain(path)
+    assert err.value.path == str(path)
