@@ -324,3 +324,22 @@ def test_kalibr_errors_name_the_field(tmp_path: Path) -> None:
     with pytest.raises(ParseError, match="invalid YAML") as err:
         read_kalibr_camchain(path)
     assert err.value.path == str(path)
+
+
+def test_run_accepts_the_new_formats(tmp_path: Path, rng: np.random.Generator) -> None:
+    from dhptam.cli import build_parser
+    from dhptam.run import run
+
+    parser = build_parser()
+    for fmt in ("vector", "vector-bag", "mvsec", "euroc"):
+        args = parser.parse_args(["run", "--format", fmt, "--sequence", "s", "--out", "o"])
+        assert args.format == fmt
+    write_euroc(tmp_path / "V1_01", rng)
+    with pytest.raises(InputError, match="has no events; run it with mode 'frames'") as err:
+        run(tmp_path / "V1_01", tmp_path / "out", fmt="euroc", mode="fusion", progress=False)
+    assert err.value.field == "mode"
+    # The frames mode reads EuRoC end to end (random images: tracking is lost, frames are read).
+    result = run(
+        tmp_path / "V1_01", tmp_path / "out", fmt="euroc", mode="frames", progress=False, max_frames=4
+    )
+    assert result.frames == 4 and (tmp_path / "out" / "trajectory.tum").exists()

@@ -351,6 +351,10 @@ def run(
     with _run_log(out_dir / "run.log"), ExitStack() as resources:
         cfg = _resolve_config(config)
         seq = resources.enter_context(_load_sequence(sequence, fmt, calibration))
+        if mode != "frames" and not seq.events:
+            raise InputError(
+                f"{sequence}: a {fmt} sequence has no events; run it with mode 'frames'", field="mode"
+            )
         extractor = load_features(features, weights=weights)
         stop_at = None if max_frames is None else int(max_frames)
         frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
