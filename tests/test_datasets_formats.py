@@ -343,3 +343,33 @@ def test_run_accepts_the_new_formats(tmp_path: Path, rng: np.random.Generator) -
         tmp_path / "V1_01", tmp_path / "out", fmt="euroc", mode="frames", progress=False, max_frames=4
     )
     assert result.frames == 4 and (tmp_path / "out" / "trajectory.tum").exists()
+
+
+def test_run_writes_kitti_and_euroc_trajectories(sim_tiny: Path, tmp_path: Path) -> None:
+    from evo.tools import file_interface as evo_fi
+
+    from dhptam.run import run
+
+    out = tmp_path / "out"
+    result = run(
+        sim_tiny, out, mode="frames", progress=False, threaded=False, trajectory_formats=("kitti", "euroc")
+    )
+    assert result.tracked > 0
+    # The KITTI and EuRoC copies hold the poses of the TUM file (evo reads all three).
+    for key in ("trajectory_frame_left", "keyframes"):
+        tum = evo_fi.read_tum_trajectory_file(str(out / f"{key}.tum"))
+        euroc = evo_fi.read_euroc_csv_trajectory(str(out / f"{key}.csv"))
+        kitti = evo_fi.read_kitti_poses_file(str(out / f"{key}.kitti"))
+        assert tum.num_poses == euroc.num_poses == kitti.num_poses > 0
+        np.testing.assert_allclose(np.stack(euroc.poses_se3), np.stack(tum.poses_se3), atol=1e-8)
+        np.testing.assert_allclose(np.stack(kitti.poses_se3), np.stack(tum.poses_se3), atol=1e-8)
+        np.testing.assert_allclose(euroc.timestamps, tum.timestamps, atol=1e-9)
+    with pytest.raises(InputError, match="unknown trajectory format 'ply'"):
+        run(
+            sim_tiny,
+            tmp_path / "o2",
+            mode="frames",
+            progress=False,
+            max_frames=1,
+            trajectory_formats=("ply",),
+        )

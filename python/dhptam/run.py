@@ -219,7 +219,16 @@ def _progress(total: int, enabled: bool, desc: str) -> Any:
 class _Outputs:
     """Collects per-frame records and writes every output file atomically."""
 
-    def __init__(self, out: Path, rect_from_cam: Any) -> None:
+    def __init__(self, out: Path, rect_from_cam: Any, extra_formats: tuple[str, ...] = ()) -> None:
+        from .trajectory import TRAJECTORY_FORMATS
+
+        for fmt in extra_formats:
+            if fmt not in TRAJECTORY_FORMATS:
+                raise InputError(
+                    f"unknown trajectory format {fmt!r}; choose from {', '.join(TRAJECTORY_FORMATS)}",
+                    field="trajectory_formats",
+                )
+        self.extra_formats = extra_formats
         self.out = out
         self.rect_from_cam = rect_from_cam
         self.rows: list[dict[str, Any]] = []
@@ -263,6 +272,20 @@ class _Outputs:
             header="timestamp[s] tx ty tz qx qy qz qw (keyframes, left rectified frame camera)",
         )
         files["keyframes"] = path
+        # Other trajectory formats (issue 9): the same poses, for evo and other tools.
+        from .trajectory import write_trajectory
+
+        for fmt in self.extra_formats:
+            if fmt == "tum":
+                continue
+            ext = "csv" if fmt == "euroc" else fmt
+            for key, (times, rows) in (
+                ("trajectory_frame_left", (t_ns, frame_cam)),
+                ("keyframes", (kt, kposes)),
+            ):
+                path = self.out / f"{key}.{ext}"
+                write_trajectory(path, fmt, times, rows)
+                files[f"{key}_{fmt}"] = path
         path = self.out / "map.ply"
         write_ply(str(path), system.map_points())
         files["map"] = path
@@ -298,6 +321,7 @@ def run(
     realtime: bool = False,
     progress: bool = True,
     max_frames: int | None = None,
+    trajectory_formats: tuple[str, ...] = (),
     threaded: bool = True,
 ) -> RunResult:
     """Runs dhptam on a sequence and writes the outputs into ``out`` (see the module docstring).
@@ -328,6 +352,9 @@ def run(
         Stop after this many frames.
     threaded
         Run mapping and loop closing on their own threads (``False``: inline, deterministic).
+    trajectory_formats
+        Also write the left frame camera's and the keyframes' trajectories as ``kitti``
+        (``*.kitti``) and/or ``euroc`` (``*.csv``) files next to the TUM ones.
 
     Returns
     -------
@@ -359,7 +386,7 @@ def run(
         stop_at = None if max_frames is None else int(max_frames)
         frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
         system = System(StereoCalibration(*frontend.calibration), frontend.config, threaded=threaded)
-        outputs = _Outputs(out_dir, frontend.rect_from_cam)
+        outputs = _Outputs(out_dir, frontend.rect_from_cam, tuple(trajectory_formats))
         log.info(
             "run: %s, %d frames, mode %s, features %s, out %s",
             sequence,
