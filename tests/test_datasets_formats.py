@@ -373,3 +373,16 @@ def test_run_writes_kitti_and_euroc_trajectories(sim_tiny: Path, tmp_path: Path)
             max_frames=1,
             trajectory_formats=("ply",),
         )
+
+
+def test_lower_bound_with_and_without_galloping_hint(rng: np.random.Generator) -> None:
+    from dhptam.datasets._common import lower_bound
+
+    for _ in range(500):
+        n = int(rng.integers(0, 20000))
+        a = np.sort(rng.integers(0, 1000, n))
+        v, lo = int(rng.integers(-5, 1005)), int(rng.integers(0, n + 1))
+        hint = int(rng.integers(0, 30000)) if rng.random() < 0.8 else None
+        got = lower_bound(a.__getitem__, n, v, lo, block=int(rng.integers(1, 64)), hint=hint)
+        after = np.nonzero(a[lo:] >= v)[0]
+        assert got == (lo + int(after[0]) if after.size else n), (n, v, lo, hint)

@@ -227,13 +227,24 @@ def pair_stereo(
     return i_left[keep].astype(np.int64), i_right[keep].astype(np.int64)
 
 
-def lower_bound(read_t: Any, n: int, v: int, lo: int = 0, block: int = 4096) -> int:
+def lower_bound(read_t: Any, n: int, v: int, lo: int = 0, block: int = 4096, hint: int | None = None) -> int:
     """First index ``i >= lo`` with ``read_t(i) >= v`` over a sorted length-``n`` sequence.
 
     ``read_t(i)`` reads one time and ``read_t(slice)`` a block: single reads while the range is
-    long, then one block read, so a search costs O(log N) small reads of a file.
+    long, then one block read, so a search costs O(log N) small reads of a file. With ``hint``
+    (the expected distance of the answer from ``lo``, e.g. the previous window's event count)
+    the search first gallops from ``lo + hint`` by doubling steps, so consecutive windows cost
+    O(log window) reads instead of O(log N).
     """
     hi = n
+    if hint is not None and hint > block:
+        step = int(hint)
+        while lo + step < hi:
+            if read_t(lo + step) < v:
+                lo, step = lo + step + 1, step * 2
+            else:
+                hi = lo + step
+                break
     while hi - lo > block:
         mid = (lo + hi) // 2
         if read_t(mid) < v:

@@ -107,7 +107,7 @@ class MvsecEventSource:
         except (OSError, RuntimeError, ValueError) as err:
             raise FileError(f"{self.path}: reading /{self.key} failed ({err})", path=str(self.path)) from None
 
-    def _lower(self, t_ns: int, lo: int = 0) -> int:
+    def _lower(self, t_ns: int, lo: int = 0, hint: int | None = None) -> int:
         # Compare in the stored unit: the smallest µs-rounded time >= t_ns.
         if self._n == 0:
             return 0
@@ -123,7 +123,7 @@ class MvsecEventSource:
                 else int(seconds_to_ns(np.array([self._read(i)]))[0])
             )
 
-        return lower_bound(read_ns, self._n, t_ns, lo)
+        return lower_bound(read_ns, self._n, t_ns, lo, hint=hint)
 
     def __len__(self) -> int:
         return self._n
@@ -187,10 +187,12 @@ class MvsecEventSource:
         t = lo if t0_ns is None else int(t0_ns)
         end = hi if t1_ns is None else int(t1_ns)
         i = self._lower(t)
+        count = None  # the previous window's size: where to start looking for the next bound
         while t < end:
             t_next = min(t + step_ns, end)
-            j = self._lower(t_next, i)
+            j = self._lower(t_next, i, hint=count)
             yield self.slice(i, j)
+            count = j - i
             i, t = j, t_next
 
     def close(self) -> None:
