@@ -47,7 +47,9 @@ def _open_h5(path: Path) -> Any:
     if not path.is_file():
         raise FileError(f"{path}: file not found", path=str(path))
     try:
-        return h5py.File(path, "r")
+        # A 32 MiB chunk cache: the binary searches read single rows, and each row read would
+        # otherwise decompress its whole chunk again when the window's slice is read next.
+        return h5py.File(path, "r", rdcc_nbytes=32 << 20, rdcc_nslots=10007)
     except OSError as err:
         raise FileError(
             f"{path}: cannot open as HDF5 ({err}); corrupt or truncated", path=str(path)
