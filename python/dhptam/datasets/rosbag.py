@@ -13,7 +13,9 @@ Events are decoded straight from the serialized message with one numpy structure
 that layout; a definition that differs is refused (naming the topic and field) rather than
 misread. Opening the bag reads each event message once to index it (bag time, first and last
 event time, count: 32 bytes per message); a window then reads only the messages it overlaps,
-so memory is proportional to the window. Frames are decoded on access.
+so memory is proportional to the window. Frames are decoded on access. Known cost: rosbags'
+``Reader.messages(start=...)`` walks its in-memory index from the beginning on every call, so a
+window late in a bag with very many messages pays one comparison per earlier message.
 
 Frame stamps are the image headers' ``stamp``, taken as the start of exposure; the bag has no
 exposure time, so ``exposure_ns`` (default 0) is an argument. Ground truth and calibration are
