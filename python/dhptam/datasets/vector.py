@@ -228,7 +228,9 @@ def load_vector(
     path
         The folder holding ``<seq>.synced.*``.
     calibration
-        A calibration folder or a rig (default: found as the module docstring says).
+        A calibration folder, or a rig whose frame is ``cam0`` (``imu_from_cam`` =
+        ``cam0_from_cam``, as the ground-truth chain assumes); default: found as the module
+        docstring says.
     body_from_cam0
         ``T_body_cam0`` as a YAML file or an SE3; by default the ``*body*.yaml`` of the
         calibration folder. Needed only when the folder has ``<seq>.synced.gt.txt``.
