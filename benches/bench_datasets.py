@@ -24,6 +24,7 @@ Both results are checked equal. Prints a Markdown table for docs/BENCHMARKS.md.
 from __future__ import annotations
 
 import argparse
+import itertools
 import platform
 import tempfile
 import time
@@ -75,7 +76,8 @@ def write_bag(path: Path, ev: dict[str, np.ndarray], per_message: int) -> None:
     store = get_typestore(Stores.ROS1_NOETIC)
     types = dict(
         get_types_from_msg(
-            "std_msgs/Header header\nuint32 height\nuint32 width\ndvs_msgs/Event[] events\n", "dvs_msgs/msg/EventArray"
+            "std_msgs/Header header\nuint32 height\nuint32 width\ndvs_msgs/Event[] events\n",
+            "dvs_msgs/msg/EventArray",
         )
     )
     types.update(get_types_from_msg("uint16 x\nuint16 y\ntime ts\nbool polarity\n", "dvs_msgs/msg/Event"))
@@ -108,7 +110,7 @@ def checksum_of(x: np.ndarray, t_ns: np.ndarray) -> int:
     # Same fold as dhptam_read, over the same 50 ms windows.
     edges = np.searchsorted(t_ns, np.arange(int(t_ns[0]), int(t_ns[-1]) + WINDOW_NS + 1, WINDOW_NS))
     total = 0
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
+    for a, b in itertools.pairwise(edges):
         total += int(t_ns[a:b].sum() % 1_000_003) + int(x[a:b].astype(np.int64).sum())
     return total
 
@@ -199,7 +201,9 @@ def main() -> None:
                     msg = store.deserialize_ros1(raw, c.msgtype)
                     xs.append(np.fromiter((e.x for e in msg.events), np.uint16, len(msg.events)))
                     ts.append(
-                        np.fromiter((e.ts.sec * 10**9 + e.ts.nanosec for e in msg.events), np.int64, len(msg.events))
+                        np.fromiter(
+                            (e.ts.sec * 10**9 + e.ts.nanosec for e in msg.events), np.int64, len(msg.events)
+                        )
                     )
                     _ = [(e.y, e.polarity) for e in msg.events]
             t_ns = np.concatenate(ts)
@@ -215,8 +219,8 @@ def main() -> None:
     print("|---|---:|---:|---:|---|---:|---:|---:|")
     for name, count, t_ours, base, t_plain in rows:
         print(
-            f"| {name} | {count:,} | {t_ours:.3f} s | {count / t_ours / 1e6:.1f} | {base} | {t_plain:.3f} s | "
-            f"{count / t_plain / 1e6:.2f} | {t_plain / t_ours:.2f}× |"
+            f"| {name} | {count:,} | {t_ours:.3f} s | {count / t_ours / 1e6:.1f} | {base} | "
+            f"{t_plain:.3f} s | {count / t_plain / 1e6:.2f} | {t_plain / t_ours:.2f}× |"
         )
 
 
