@@ -18,7 +18,10 @@ SuperPoint runs with random weights (no weights ship with dhptam; the cost does 
 their values, the tracking result does: its row is marked). R2D2 weights come from
 ``--r2d2-dir`` (default ``../shared/models/r2d2``).
 
-    python benches/bench_end_to_end.py [--sequence DIR] [--frames 20] [--only r2d2]
+With ``--viz rerun`` every run also writes its rerun recording (``dhptam run --viz rerun``),
+to measure what the recording costs against a run without it.
+
+    python benches/bench_end_to_end.py [--sequence DIR] [--frames 20] [--only r2d2] [--viz rerun]
 """
 
 from __future__ import annotations
@@ -86,6 +89,7 @@ def main() -> None:
     parser.add_argument("--mode", default="fusion", choices=["fusion", "frames", "events"])
     parser.add_argument("--frames", type=int, default=20, help="frames per run (default 20)")
     parser.add_argument("--only", default="", help="run only rows whose label contains this text")
+    parser.add_argument("--viz", default="none", choices=["none", "rerun"], help="record with rerun too")
     parser.add_argument("--r2d2-dir", type=Path, default=REPO.parent / "shared" / "models" / "r2d2")
     args = parser.parse_args()
 
@@ -93,7 +97,8 @@ def main() -> None:
         from dhptam.demo import demo_sequence
 
         args.sequence = demo_sequence()
-    print(f"# {args.sequence}, mode {args.mode}, {args.frames} frames, {os.cpu_count()} cores")
+    cores = os.cpu_count()
+    print(f"# {args.sequence}, mode {args.mode}, {args.frames} frames, viz {args.viz}, {cores} cores")
     print(f"# load average before: {os.getloadavg()[0]:.2f}\n")
     print(
         "| extractor | frames (tracked) | end to end ms/frame (fps) | front-end / extraction / tracking "
@@ -114,6 +119,7 @@ def main() -> None:
                 extractor=extractor,
                 progress=False,
                 max_frames=args.frames,
+                viz=args.viz,
             )
             stages = json.loads((Path(out) / "timing.json").read_text())["stages"]
         ms = 1e3 * result.seconds / max(result.frames, 1)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import json
+import sys
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,7 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-import dhptam.run
+import dhptam
 from dhptam.cli import main
 from dhptam.depth import write_ply
 from dhptam.run import run
@@ -203,8 +204,12 @@ def test_realtime_feeds_frames_at_the_sensor_rate(
     realtime: bool, sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     clock = _FakeClock()
-    monkeypatch.setattr(dhptam.run, "time", clock)
-    result = run(sim_desk_run, tmp_path, progress=False, max_frames=6, realtime=realtime, threaded=False)
+    monkeypatch.setattr(sys.modules["dhptam.run"], "time", clock)
+    # Through the package-level entry point for scripts, dhptam.run(...) -> RunResult.
+    result = dhptam.run(
+        sim_desk_run, tmp_path, progress=False, max_frames=6, realtime=realtime, threaded=False
+    )
+    assert isinstance(result, dhptam.RunResult)
     assert result.frames == 6
     t_ns, _ = read_tum(tmp_path / "trajectory.tum")
     if realtime:
