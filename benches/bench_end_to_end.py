@@ -34,6 +34,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from dhptam import features
 from dhptam.run import run
 
@@ -72,6 +74,31 @@ def configurations(r2d2_dir: Path) -> list[tuple[str, str, str, Callable[[], Any
     ]
 
 
+def time_viz_frames() -> dict[str, list[float]]:
+    """Wraps the rerun sink's per-frame methods so that each call's wall time is recorded:
+    ``hand_over`` (:meth:`dhptam.viz.RerunSink.frame`, on the tracking thread) and ``logging``
+    (encoding, matching for the drawing, handing to rerun's writer, on the sink's thread)."""
+    import time
+
+    from dhptam.viz import RerunSink
+
+    seconds: dict[str, list[float]] = {"hand_over": [], "logging": []}
+
+    def wrap(name: str, key: str) -> None:
+        inner = getattr(RerunSink, name)
+
+        def timed(self: RerunSink, *args: Any) -> None:
+            start = time.perf_counter()
+            inner(self, *args)
+            seconds[key].append(time.perf_counter() - start)
+
+        setattr(RerunSink, name, timed)
+
+    wrap("frame", "hand_over")
+    wrap("_log_frame", "logging")
+    return seconds
+
+
 def warm_up(extractor: Any, sequence: Path) -> None:
     """One extraction on the sequence's first frame pair (allocations, oneDNN kernel choice)."""
     from dhptam.datasets import load_tumvie
@@ -105,6 +132,7 @@ def main() -> None:
         "ms (mean) | paper CPU end to end / ours |"
     )
     print("|---|---|---|---|---|")
+    viz_seconds = time_viz_frames() if args.viz != "none" else {}
     for label, name, family, make in configurations(args.r2d2_dir):
         if args.only and args.only not in label:
             continue
@@ -122,6 +150,12 @@ def main() -> None:
                 viz=args.viz,
             )
             stages = json.loads((Path(out) / "timing.json").read_text())["stages"]
+            if "recording" in result.files:
+                mb = result.files["recording"].stat().st_size / 1e6
+                hand_over, logging = (1e3 * float(np.mean(viz_seconds[k])) for k in ("hand_over", "logging"))
+                label += f", rerun recording {mb:.1f} MB, hand-over/logging {hand_over:.1f}/{logging:.1f} ms"
+                for values in viz_seconds.values():
+                    values.clear()
         ms = 1e3 * result.seconds / max(result.frames, 1)
         means = [stages[s].get("mean_ms", float("nan")) for s in ("frontend", "extraction", "tracking")]
         per_stage = " / ".join(f"{m:.0f}" for m in means)

@@ -15,6 +15,10 @@ seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inli
 bias, stage times), ``timing.json`` (per stage statistics), ``config.toml`` (resolved) and
 ``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
 a file; Ctrl-C or a failure mid-run still writes everything done so far.
+
+With ``viz="rerun"`` each tracked frame is also handed to a :class:`dhptam.viz.RerunSink`,
+which streams ``recording.rrd`` as the run goes (the no-op :class:`dhptam.viz.VizSink`
+otherwise).
 """
 
 from __future__ import annotations

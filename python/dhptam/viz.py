@@ -43,7 +43,9 @@ from __future__ import annotations
 import csv
 import json
 import os
+import queue
 import sys
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -153,6 +155,9 @@ class RerunSink(VizSink):
     """Writes a rerun recording to ``path`` (and streams it to a spawned viewer with ``spawn``).
 
     ``calibration`` is the rectified left camera ``(fx, fy, cx, cy, baseline_m, width, height)``.
+    Frames are encoded and logged on a thread of the sink's own, up to ``depth`` frames behind
+    the caller (which waits when it is that far ahead, so memory stays bounded); an error there
+    is raised by the next :meth:`frame`, :meth:`finish` or :meth:`close`.
     """
 
     def __init__(
@@ -162,6 +167,7 @@ class RerunSink(VizSink):
         *,
         spawn: bool = False,
         name: str = "dhptam",
+        depth: int = 4,
     ) -> None:
         rr = import_rerun()
         self._rr = rr
@@ -187,6 +193,32 @@ class RerunSink(VizSink):
         )
         self._state: tuple[str, str] | None = None
         self._closed = False
+        self._queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=max(1, int(depth)))
+        self._error: BaseException | None = None
+        self._worker = threading.Thread(target=self._work, name="dhptam-viz", daemon=True)
+        self._worker.start()
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            if self._error is None:
+                try:
+                    self._log_frame(*item)
+                except BaseException as error:  # re-raised on the caller's thread
+                    self._error = error
+
+    def _raise_pending(self) -> None:
+        if self._error is not None:
+            error, self._error = self._error, None
+            raise error
+
+    def _drain(self) -> None:
+        """Waits until every queued frame is logged and stops the worker."""
+        if self._worker.is_alive():
+            self._queue.put(None)
+            self._worker.join()
 
     def _time(self, t_ns: int, index: int | None = None) -> None:
         self.rec.set_time("sensor_time", duration=_duration(t_ns))
@@ -198,6 +230,10 @@ class RerunSink(VizSink):
         self.rec.log(entity, rr.Image(np.ascontiguousarray(image)).compress(jpeg_quality=_JPEG_QUALITY))
 
     def frame(self, frame: Any, left: Any, right: Any, track: Any) -> None:
+        self._raise_pending()
+        self._queue.put((frame, left, right, track))
+
+    def _log_frame(self, frame: Any, left: Any, right: Any, track: Any) -> None:
         rr, rec = self._rr, self.rec
         self._time(frame.t_ns, frame.index)
         pose = np.asarray(track.pose, np.float64)
@@ -224,6 +260,8 @@ class RerunSink(VizSink):
             self._state = state
 
     def finish(self, system: Any, reference: tuple[npt.NDArray[np.int64], _F64] | None) -> None:
+        self._drain()
+        self._raise_pending()
         t_ns, poses = system.trajectory()
         kt, kposes = system.keyframe_trajectory()
         log_final(
@@ -240,8 +278,10 @@ class RerunSink(VizSink):
     def close(self) -> None:
         if not self._closed:
             self._closed = True
+            self._drain()
             self.rec.flush()
             self.rec.disconnect()
+            self._raise_pending()
 
 
 def log_final(
