@@ -21,7 +21,7 @@ from dhptam.cli import main
 from dhptam.depth import write_ply
 from dhptam.run import run
 from dhptam.trajectory import read_tum
-from dhptam.viz import align_positions, read_ply_points, view
+from dhptam.viz import RerunSink, align_positions, read_ply_points, view
 
 PER_FRAME = (
     "/world/camera",
@@ -220,3 +220,10 @@ def test_realtime_feeds_frames_at_the_sensor_rate(
         assert np.allclose(clock.slept, np.diff(t_ns) / 1e9, atol=1e-9)
     else:
         assert clock.slept == []
+
+
+def test_a_failure_on_the_viz_thread_reaches_the_caller(tmp_path: Path) -> None:
+    sink = RerunSink(tmp_path / "broken.rrd", (100.0, 100.0, 50.0, 50.0, 0.1, 100, 100))
+    sink.frame(object(), None, None, None)  # no images: logging it fails on the sink's thread
+    with pytest.raises(AttributeError):
+        sink.close()
