@@ -244,7 +244,10 @@ class RerunSink(VizSink):
             self._image("images/e3ct", _e3ct_rgb(frame.events_left))
         self._image("images/stereo", np.hstack([frame.left, frame.right]))
         kl = np.asarray(left.keypoints, np.float32).reshape(-1, 2)
-        kr = np.asarray(right.keypoints, np.float32).reshape(-1, 2) + np.float32([frame.left.shape[1], 0])
+        # Right keypoints drawn in the right half of the stereo image.
+        kr = np.asarray(right.keypoints, np.float32).reshape(-1, 2) + np.array(
+            [frame.left.shape[1], 0], np.float32
+        )
         colours = np.vstack([np.tile([0, 200, 255], (len(kl), 1)), np.tile([255, 160, 0], (len(kr), 1))])
         rec.log("images/stereo/keypoints", rr.Points2D(np.vstack([kl, kr]), colors=colours, radii=1.5))
         pairs = stereo_matches(left, right)
