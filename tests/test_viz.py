@@ -144,6 +144,15 @@ def test_view_builds_a_recording_from_a_run_without_one(sim_desk_run: Path, tmp_
     saved = tmp_path / "saved.rrd"
     assert main(["view", str(out), "--save", str(saved)]) == 0
     assert len(_read(saved)["/world/camera"]) == 10
+    # Without the sequence's location no ground truth is drawn, unless --reference names one.
+    timing = json.loads((out / "timing.json").read_text())
+    del timing["sequence"]
+    (out / "timing.json").write_text(json.dumps(timing))
+    view(out, save=tmp_path / "no-gt.rrd", spawn=False)
+    assert "/world/trajectory/ground_truth" not in _read(tmp_path / "no-gt.rrd")
+    reference = sim_desk_run / "groundtruth_frame_left.txt"
+    assert main(["view", str(out), "--save", str(tmp_path / "gt.rrd"), "--reference", str(reference)]) == 0
+    assert len(_read(tmp_path / "gt.rrd")["/world/trajectory/ground_truth"]) == 1
 
 
 def test_view_errors_name_the_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
