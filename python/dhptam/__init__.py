@@ -27,6 +27,11 @@ from .errors import (
     ParseError,
 )
 from .geometry import SE3, SO3, Camera, RectifiedStereo, StereoRig, Triangulation, triangulate
+
+# ``dhptam.run(...)`` -> ``RunResult``: the function behind ``dhptam run`` (issue 8). It takes
+# the name of its module on the package, so ``import dhptam.run`` followed by ``dhptam.run``
+# gives the function; the module itself is ``sys.modules["dhptam.run"]``.
+from .run import RunResult, run
 from .system import StereoCalibration, System, TrackResult
 
 __version__: str = _core.__version__
@@ -43,11 +48,13 @@ __all__ = [
     "NumericalError",
     "ParseError",
     "RectifiedStereo",
+    "RunResult",
     "StereoCalibration",
     "StereoRig",
     "System",
     "TrackResult",
     "Triangulation",
     "__version__",
+    "run",
     "triangulate",
 ]

@@ -271,6 +271,7 @@ def _run_command(args: argparse.Namespace) -> int:
         max_frames=args.max_frames,
         threaded=not args.sync,
         trajectory_formats=tuple(args.trajectory_format or ()),
+        viz=args.viz,
     )
     states = ", ".join(f"{n} {s}" for s, n in sorted(result.states.items()))
     sys.stdout.write(
@@ -317,6 +318,12 @@ def _add_run_command(sub: Any) -> None:
         help="also write the trajectories as KITTI (*.kitti) or EuRoC CSV (*.csv); repeatable",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--viz",
+        choices=["none", "rerun", "rerun-spawn"],
+        default="none",
+        help="rerun: write OUT/recording.rrd; rerun-spawn: also open a live viewer (needs dhptam[viz])",
+    )
     p.set_defaults(func=_run_command)
 
 
@@ -399,6 +406,38 @@ def _add_convert_command(sub: Any) -> None:
     p.set_defaults(func=_convert_command)
 
 
+# -- dhptam view (issue 8) ---------------------------------------------------------------------
+
+
+def _view_command(args: argparse.Namespace) -> int:
+    from .viz import view
+
+    spawn = True if args.spawn else (False if args.no_spawn else None)
+    path, shown = view(args.out, save=args.save, reference=args.reference, spawn=spawn)
+    sys.stdout.write(f"recording: {path}" + (" (viewer opened)" if shown else "") + "\n")
+    return 0
+
+
+def _add_view_command(sub: Any) -> None:
+    p = sub.add_parser(
+        "view",
+        help="open a run's rerun recording (or build one from its files) in the rerun viewer",
+        description=(
+            "Show OUT/recording.rrd (written by dhptam run --viz rerun) in the rerun viewer. For a "
+            "run made without --viz, a recording is built from its files (trajectory, keyframes, "
+            "map, frames.csv, loops, ground truth when found) into OUT/view.rrd or --save FILE. "
+            "The viewer opens when there is a display and no --save is given."
+        ),
+    )
+    p.add_argument("out", metavar="OUT", help="output folder of dhptam run")
+    p.add_argument("--save", metavar="FILE.rrd", help="write the recording here (no viewer unless --spawn)")
+    p.add_argument("--reference", metavar="FILE", help="reference trajectory (TUM) to draw, aligned")
+    group = p.add_mutually_exclusive_group()
+    group.add_argument("--spawn", action="store_true", help="open the viewer even with --save")
+    group.add_argument("--no-spawn", action="store_true", help="never open the viewer")
+    p.set_defaults(func=_view_command)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``dhptam`` command."""
     parser = argparse.ArgumentParser(
@@ -429,6 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_eval_command(sub)
     _add_calibrate_align_command(sub)
     _add_convert_command(sub)
+    _add_view_command(sub)
     return parser
 
 

@@ -15,6 +15,10 @@ seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inli
 bias, stage times), ``timing.json`` (per stage statistics), ``config.toml`` (resolved) and
 ``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
 a file; Ctrl-C or a failure mid-run still writes everything done so far.
+
+With ``viz="rerun"`` each tracked frame is also handed to a :class:`dhptam.viz.RerunSink`,
+which streams ``recording.rrd`` as the run goes (the no-op :class:`dhptam.viz.VizSink`
+otherwise).
 """
 
 from __future__ import annotations
@@ -233,6 +237,7 @@ class _Outputs:
         self.rect_from_cam = rect_from_cam
         self.rows: list[dict[str, Any]] = []
         self.times: dict[str, list[float]] = {s: [] for s in STAGES}
+        self.meta: dict[str, Any] = {}
 
     def record(self, row: dict[str, Any]) -> None:
         self.rows.append(row)
@@ -323,6 +328,8 @@ def run(
     max_frames: int | None = None,
     trajectory_formats: tuple[str, ...] = (),
     threaded: bool = True,
+    viz: str = "none",
+    extractor: Any = None,
 ) -> RunResult:
     """Runs dhptam on a sequence and writes the outputs into ``out`` (see the module docstring).
 
@@ -355,6 +362,13 @@ def run(
     trajectory_formats
         Also write the left frame camera's and the keyframes' trajectories as ``kitti``
         (``*.kitti``) and/or ``euroc`` (``*.csv``) files next to the TUM ones.
+    viz
+        ``none`` (default), ``rerun`` (write ``OUT/recording.rrd``, see :mod:`dhptam.viz`) or
+        ``rerun-spawn`` (also stream it to a rerun viewer started here).
+    extractor
+        A ready feature extractor (anything with ``extract(left, right)``) used instead of
+        loading ``features``/``weights``, e.g. one with custom settings; ``features`` then only
+        names it in the outputs.
 
     Returns
     -------
@@ -368,6 +382,10 @@ def run(
 
     if mode not in MODES:
         raise InputError(f"unknown mode {mode!r}; choose one of {', '.join(MODES)}", field="mode")
+    from .viz import VIZ_CHOICES
+
+    if viz not in VIZ_CHOICES:
+        raise InputError(f"unknown viz {viz!r}; choose one of {', '.join(VIZ_CHOICES)}", field="viz")
     if features not in FEATURES:
         raise InputError(
             f"unknown features {features!r}; choose one of {', '.join(FEATURES)}", field="features"
@@ -382,11 +400,17 @@ def run(
             raise InputError(
                 f"{sequence}: a {fmt} sequence has no events; run it with mode 'frames'", field="mode"
             )
-        extractor = load_features(features, weights=weights)
+        if extractor is None:
+            extractor = load_features(features, weights=weights)
         stop_at = None if max_frames is None else int(max_frames)
         frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
         system = System(StereoCalibration(*frontend.calibration), frontend.config, threaded=threaded)
         outputs = _Outputs(out_dir, frontend.rect_from_cam, tuple(trajectory_formats))
+        outputs.meta["sequence"] = str(Path(sequence).resolve())
+        sink = _viz_sink(viz, out_dir, frontend.calibration, resources)
+        reference = None
+        if seq.ground_truth is not None:
+            reference = (seq.ground_truth.t_ns, seq.ground_truth.world_from_cam)
         log.info(
             "run: %s, %d frames, mode %s, features %s, out %s",
             sequence,
@@ -398,22 +422,33 @@ def run(
         result = RunResult(out_dir, mode, features, 0, {}, 0, 0, 0, 0.0)
         states: Counter[str] = Counter()
         try:
-            _track_all(frontend, extractor, system, outputs, states, realtime, progress)
+            _track_all(frontend, extractor, system, outputs, states, realtime, progress, sink)
         except KeyboardInterrupt:
             result.interrupted = True
             log.warning("interrupted by the user after %d frames; writing what was done", len(outputs.rows))
         except BaseException as error:
             result.error = f"{type(error).__name__}: {error}"
             log.error("run failed after %d frames: %s", len(outputs.rows), result.error)
-            _finish(system, outputs, frontend, result, states, started, features)
+            _finish(system, outputs, frontend, result, states, started, features, sink, reference)
             raise
-        _finish(system, outputs, frontend, result, states, started, features)
+        _finish(system, outputs, frontend, result, states, started, features, sink, reference)
         log.info(
             "done: %d frames in %.1f s (%.1f fps), states %s, %d keyframes, %d map points, %d loops",
             result.frames, result.seconds, result.fps, dict(states), result.keyframes, result.map_points,
             result.loop_closures,
         )  # fmt: skip
         return result
+
+
+def _viz_sink(viz: str, out_dir: Path, calibration: Any, resources: ExitStack) -> Any:
+    """The run's visualisation sink: the no-op one unless ``viz`` asks for rerun."""
+    from .viz import RECORDING, RerunSink, VizSink
+
+    if viz == "none":
+        return VizSink()
+    sink = RerunSink(out_dir / RECORDING, calibration, spawn=viz == "rerun-spawn", name=out_dir.name)
+    resources.callback(sink.close)
+    return sink
 
 
 def _finish(
@@ -424,6 +459,8 @@ def _finish(
     states: Counter[str],
     started: float,
     features: str,
+    sink: Any,
+    reference: Any,
 ) -> None:
     system.shutdown()
     frontend.close()
@@ -443,8 +480,17 @@ def _finish(
         "states": result.states,
         "interrupted": result.interrupted,
         "error": result.error,
+        "loops_s": [[a / _NS, b / _NS] for a, b in system.loop_closures()],
+        **outputs.meta,
     }
     result.files = outputs.write(system, frontend.config.to_toml(), meta)
+    try:
+        sink.finish(system, reference)
+    finally:
+        sink.close()
+    recording = getattr(sink, "path", None)
+    if recording is not None:
+        result.files["recording"] = recording
 
 
 def _track_all(
@@ -455,6 +501,7 @@ def _track_all(
     states: Counter[str],
     realtime: bool,
     progress: bool,
+    sink: Any,
 ) -> None:
     def front(index: int) -> tuple[Any, float]:
         t0 = time.perf_counter()
@@ -484,6 +531,7 @@ def _track_all(
             r = system.track(frame.t_ns, left, right)
             t_track = time.perf_counter() - t0
             states[r.state] += 1
+            sink.frame(frame, left, right, r)
             outputs.record(
                 {
                     "index": frame.index,
