@@ -270,6 +270,7 @@ def _run_command(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         max_frames=args.max_frames,
         threaded=not args.sync,
+        record=args.record,
     )
     states = ", ".join(f"{n} {s}" for s, n in sorted(result.states.items()))
     sys.stdout.write(
@@ -309,6 +310,11 @@ def _add_run_command(sub: Any) -> None:
     p.add_argument("--realtime", action="store_true", help="play the sequence back at sensor rate")
     p.add_argument("--max-frames", type=int, metavar="N", help="stop after N frames")
     p.add_argument("--sync", action="store_true", help="mapping and loop closing inline (deterministic)")
+    p.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="also record inputs and outputs (frames, events, poses, keyframes, map) into one MCAP log",
+    )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_run_command)
 

@@ -224,6 +224,7 @@ class _Outputs:
         self.rect_from_cam = rect_from_cam
         self.rows: list[dict[str, Any]] = []
         self.times: dict[str, list[float]] = {s: [] for s in STAGES}
+        self.recorder: Any = None  # a dhptam.datasets.mcap.McapRecorder with --record
 
     def record(self, row: dict[str, Any]) -> None:
         self.rows.append(row)
@@ -266,6 +267,13 @@ class _Outputs:
         path = self.out / "map.ply"
         write_ply(str(path), system.map_points())
         files["map"] = path
+        if self.recorder is not None:
+            t_ns_rec, frame_cam_rec = system.trajectory()
+            if len(frame_cam_rec):
+                frame_cam_rec = frame_cam_rec @ self.rect_from_cam.matrix()
+            files["record"] = self.recorder.finish(
+                (t_ns_rec, frame_cam_rec), (kt, kposes), system.map_points()
+            )
         header = list(self.rows[0]) if self.rows else ["index"]
         lines = [",".join(header)] + [",".join(str(r[h]) for h in header) for r in self.rows]
         path = self.out / "frames.csv"
@@ -299,6 +307,7 @@ def run(
     progress: bool = True,
     max_frames: int | None = None,
     threaded: bool = True,
+    record: str | Path | None = None,
 ) -> RunResult:
     """Runs dhptam on a sequence and writes the outputs into ``out`` (see the module docstring).
 
@@ -328,6 +337,9 @@ def run(
         Stop after this many frames.
     threaded
         Run mapping and loop closing on their own threads (``False``: inline, deterministic).
+    record
+        Also record the run's inputs (frames, raw events, calibration, ground truth) and
+        outputs (trajectories, keyframes, map) into this MCAP log (``dhptam.datasets.mcap``).
 
     Returns
     -------
@@ -356,6 +368,11 @@ def run(
         frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
         system = System(StereoCalibration(*frontend.calibration), frontend.config, threaded=threaded)
         outputs = _Outputs(out_dir, frontend.rect_from_cam)
+        # MCAP recording (--record): inputs per frame in _track_all, outputs in _finish.
+        if record is not None:
+            from .datasets.mcap import McapRecorder
+
+            outputs.recorder = McapRecorder(record, seq)
         log.info(
             "run: %s, %d frames, mode %s, features %s, out %s",
             sequence,
@@ -449,6 +466,8 @@ def _track_all(
                 wait = (frame.t_ns - t_first) / _NS - (time.perf_counter() - wall0)
                 if wait > 0:
                     time.sleep(wait)
+            if outputs.recorder is not None:
+                outputs.recorder.add_frame(frame.index)
             t0 = time.perf_counter()
             r = system.track(frame.t_ns, left, right)
             t_track = time.perf_counter() - t0
