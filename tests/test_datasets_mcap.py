@@ -270,3 +270,33 @@ def test_a_failed_write_leaves_no_file(tmp_path: Path, monkeypatch: pytest.Monke
             write_sequence(seq, target, progress=False)
     assert not target.exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith("out.mcap")]
+
+
+def test_run_record_holds_the_inputs_and_outputs_of_the_run(sim_desk_run: Path, tmp_path: Path) -> None:
+    from dhptam._core import McapReader
+    from dhptam.cli import main
+    from dhptam.trajectory import read_tum
+
+    out, record = tmp_path / "run", tmp_path / "run.mcap"
+    args = ["run", "--sequence", str(sim_desk_run), "--out", str(out), "--max-frames", "4", "-q", "--sync"]
+    assert main([*args, "--record", str(record)]) == 0
+    t_tum, _ = read_tum(out / "trajectory_frame_left.tum")
+    reader = McapReader(record)
+    topics = reader.topics()
+    assert topics["/slam/world_from_frame_left"]["schema_name"] == "foxglove.PoseInFrame"
+    assert topics["/slam/map"]["schema_name"] == "foxglove.PointCloud"
+    t_rec, _, _ = reader.poses("/slam/world_from_frame_left")
+    assert len(t_rec) == len(t_tum) == 4
+    ((_, frame, points),) = reader.point_clouds("/slam/map")
+    assert frame == "world" and points.shape[1] == 3
+    # The inputs read back as a sequence: the first four frames and their events, unchanged.
+    with load_tumvie(sim_desk_run) as seq, load_mcap(record) as back:
+        assert len(back.frames) == 4
+        np.testing.assert_array_equal(back.frames.t_ns, seq.frames.t_ns[:4])
+        np.testing.assert_array_equal(back.frames[3].left, seq.frames[3].left)
+        t_end = int(seq.frames.t_mid_ns[3])
+        for side in ("left", "right"):
+            expected = seq.events[side].window(seq.events[side].t_range_ns[0], t_end)
+            got = back.events[side].slice(0, len(back.events[side]))
+            np.testing.assert_array_equal(got.t_ns, expected.t_ns)
+            np.testing.assert_array_equal(got.x, expected.x)

@@ -188,7 +188,12 @@ def write_sequence(
                 bar.update(1)
         gt = sequence.ground_truth
         if gt is not None:
-            keep = (gt.t_ns >= t0) & (gt.t_ns < t1)
+            # Without a slice, every pose is kept (ground truth may outlast frames and events).
+            keep = np.ones(len(gt), bool)
+            if start_s is not None:
+                keep &= gt.t_ns >= t0
+            if duration_s is not None:
+                keep &= gt.t_ns < t1
             writer.add_poses(GROUND_TRUTH_TOPIC, "world", gt.t_ns[keep], gt.world_from_cam[keep])
         exposures = [int(frames.exposure_ns[i]) for i in frame_ids]
         writer.add_metadata(SEQUENCE_METADATA, _sequence_metadata(sequence, exposures))
