@@ -196,9 +196,10 @@ def main() -> None:
                     e = int(s) + 50_000_000
                     # The batch holding s starts before s: begin at that batch's log time.
                     k = max(int(np.searchsorted(batch_t0, s, side="right")) - 1, 0)
-                    cols = decode_python(
-                        r.iter_messages(topics=["/events/left"], start_time=int(batch_t0[k]), end_time=e), cls
+                    found = r.iter_messages(
+                        topics=["/events/left"], starting_at=int(batch_t0[k]), ending_before=e
                     )
+                    cols = decode_python(found, cls)
                     tt = cols[2]
                     total += int(np.searchsorted(tt, e) - np.searchsorted(tt, s))
             return total

@@ -69,7 +69,7 @@ fn schema_kind(name: &str) -> PyResult<SchemaKind> {
 impl PyMcapWriter {
     /// Starts a log written to a temporary file next to `path`, renamed by `finish()`.
     #[new]
-    #[pyo3(signature = (path, compression = "zstd", chunk_size_bytes = 4 << 20, batch_events = 32768))]
+    #[pyo3(signature = (path, compression = "zstd", chunk_size_bytes = 4194304, batch_events = 32768))]
     fn new(
         path: PathBuf,
         compression: &str,
