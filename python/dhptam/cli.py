@@ -272,6 +272,7 @@ def _run_command(args: argparse.Namespace) -> int:
         threaded=not args.sync,
         trajectory_formats=tuple(args.trajectory_format or ()),
         viz=args.viz,
+        record=args.record,
     )
     states = ", ".join(f"{n} {s}" for s, n in sorted(result.states.items()))
     sys.stdout.write(
@@ -316,6 +317,11 @@ def _add_run_command(sub: Any) -> None:
         action="append",
         choices=["kitti", "euroc"],
         help="also write the trajectories as KITTI (*.kitti) or EuRoC CSV (*.csv); repeatable",
+    )
+    p.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="also record inputs and outputs (frames, events, poses, keyframes, map) into one MCAP log",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument(

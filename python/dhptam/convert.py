@@ -49,7 +49,24 @@ def _window(sequence: Any, start_s: float | None, duration_s: float | None) -> t
     return t0, int(t1)
 
 
-def _write_tumvie(sequence: Any, dst: Path, t0: int, t1: int, progress: Any) -> Path:
+def _bar(enabled: bool, total: int, desc: str) -> Any:
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step")
+
+
+def _write_tumvie(sequence: Any, dst: Path, t0: int, t1: int, progress: bool) -> Path:
+    bar = _bar(progress, _steps(sequence, t0, t1), f"convert → tum-vie {dst.name}")
+    try:
+        return _write_tumvie_steps(sequence, dst, t0, t1, bar)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _write_tumvie_steps(sequence: Any, dst: Path, t0: int, t1: int, progress: Any) -> Path:
     from .datasets import TumVieWriter
 
     rig = sequence.calibration
@@ -96,10 +113,19 @@ def _steps(sequence: Any, t0: int, t1: int) -> int:
     return frames + chunks
 
 
-WRITERS: dict[str, Callable[[Any, Path, int, int, Any], Path]] = {
+def _write_mcap(sequence: Any, dst: Path, t0: int, t1: int, progress: bool) -> Path:
+    from .datasets.mcap import sequence_start_ns, write_sequence
+
+    origin = sequence_start_ns(sequence)
+    duration = None if t1 == np.iinfo(np.int64).max else (t1 - t0) / 1e9
+    return write_sequence(sequence, dst, start_s=(t0 - origin) / 1e9, duration_s=duration, progress=progress)
+
+
+WRITERS: dict[str, Callable[[Any, Path, int, int, bool], Path]] = {
     "tum-vie": _write_tumvie,
+    "mcap": _write_mcap,
 }
-"""Writer of each output format (the MCAP writer registers as ``"mcap"``)."""
+"""Writer of each output format: ``(sequence, dst, t0_ns, t1_ns, progress) -> dst``, atomic."""
 
 
 def convert(
@@ -130,18 +156,7 @@ def convert(
         raise InputError(f"{dst} already exists; choose a new destination", field="dst")
     with load(from_format, src, calibration=calibration) as sequence:
         t0, t1 = _window(sequence, start_s, duration_s)
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(
-                total=_steps(sequence, t0, t1), desc=f"convert {from_format} → {to_format}", unit="step"
-            )
-        try:
-            return writer(sequence, dst, t0, t1, bar)
-        finally:
-            if bar is not None:
-                bar.close()
+        return writer(sequence, dst, t0, t1, progress)
 
 
 __all__ = ["EVENT_CHUNK_NS", "WRITERS", "convert"]

@@ -238,6 +238,7 @@ class _Outputs:
         self.rows: list[dict[str, Any]] = []
         self.times: dict[str, list[float]] = {s: [] for s in STAGES}
         self.meta: dict[str, Any] = {}
+        self.recorder: Any = None  # a dhptam.datasets.mcap.McapRecorder with --record
 
     def record(self, row: dict[str, Any]) -> None:
         self.rows.append(row)
@@ -294,6 +295,13 @@ class _Outputs:
         path = self.out / "map.ply"
         write_ply(str(path), system.map_points())
         files["map"] = path
+        if self.recorder is not None:
+            t_ns_rec, frame_cam_rec = system.trajectory()
+            if len(frame_cam_rec):
+                frame_cam_rec = frame_cam_rec @ self.rect_from_cam.matrix()
+            files["record"] = self.recorder.finish(
+                (t_ns_rec, frame_cam_rec), (kt, kposes), system.map_points()
+            )
         header = list(self.rows[0]) if self.rows else ["index"]
         lines = [",".join(header)] + [",".join(str(r[h]) for h in header) for r in self.rows]
         path = self.out / "frames.csv"
@@ -330,6 +338,7 @@ def run(
     threaded: bool = True,
     viz: str = "none",
     extractor: Any = None,
+    record: str | Path | None = None,
 ) -> RunResult:
     """Runs dhptam on a sequence and writes the outputs into ``out`` (see the module docstring).
 
@@ -369,6 +378,9 @@ def run(
         A ready feature extractor (anything with ``extract(left, right)``) used instead of
         loading ``features``/``weights``, e.g. one with custom settings; ``features`` then only
         names it in the outputs.
+    record
+        Also record the run's inputs (frames, raw events, calibration, ground truth) and
+        outputs (trajectories, keyframes, map) into this MCAP log (``dhptam.datasets.mcap``).
 
     Returns
     -------
@@ -411,6 +423,11 @@ def run(
         reference = None
         if seq.ground_truth is not None:
             reference = (seq.ground_truth.t_ns, seq.ground_truth.world_from_cam)
+        # MCAP recording (--record): inputs per frame in _track_all, outputs in _finish.
+        if record is not None:
+            from .datasets.mcap import McapRecorder
+
+            outputs.recorder = McapRecorder(record, seq)
         log.info(
             "run: %s, %d frames, mode %s, features %s, out %s",
             sequence,
@@ -527,6 +544,8 @@ def _track_all(
                 wait = (frame.t_ns - t_first) / _NS - (time.perf_counter() - wall0)
                 if wait > 0:
                     time.sleep(wait)
+            if outputs.recorder is not None:
+                outputs.recorder.add_frame(frame.index)
             t0 = time.perf_counter()
             r = system.track(frame.t_ns, left, right)
             t_track = time.perf_counter() - t0

@@ -56,6 +56,18 @@ pub enum Error {
         source: std::io::Error,
     },
 
+    /// A binary file (an MCAP log) is malformed or lacks what the reader needs.
+    #[error("{path}: {field}: {message}")]
+    Format {
+        /// The file being read or written.
+        path: PathBuf,
+        /// The part of the file concerned: a channel topic (`/events/left`), a record kind
+        /// (`summary`, `magic`), a metadata name.
+        field: String,
+        /// What is wrong and what was expected.
+        message: String,
+    },
+
     /// A numerical procedure failed on valid input (degenerate geometry, no convergence).
     #[error("numerical failure in {operation}: {reason}")]
     Numerical {

@@ -38,6 +38,12 @@ fn build(py: Python<'_>, error: &Error) -> PyResult<PyErr> {
             Some(*line),
         ),
         Error::Io { path, .. } => ("FileError", None, Some(path.display().to_string()), None),
+        Error::Format { path, field, .. } => (
+            "ParseError",
+            Some(field.clone()),
+            Some(path.display().to_string()),
+            None,
+        ),
         Error::Numerical { .. } => ("NumericalError", None, None, None),
     };
     let instance = class(py, name)?.call1((error.to_string(),))?;

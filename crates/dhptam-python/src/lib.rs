@@ -15,6 +15,7 @@ mod events;
 mod fusion;
 mod geometry;
 mod matching;
+mod mcap;
 mod sim;
 mod slam;
 mod solver;
@@ -92,6 +93,9 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(solver::_solve_bal_file, m)?)?;
     m.add_function(wrap_pyfunction!(solver::_solve_pose_graph_file, m)?)?;
     m.add_function(wrap_pyfunction!(solver::_bundle_adjust, m)?)?;
+    // MCAP logs (dhptam.datasets.mcap).
+    m.add_class::<mcap::PyMcapWriter>()?;
+    m.add_class::<mcap::PyMcapReader>()?;
     m.add_class::<slam::PySystem>()?;
     m.add_function(wrap_pyfunction!(solver::solve_pnp_ransac, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;

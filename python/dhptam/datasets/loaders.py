@@ -58,12 +58,23 @@ def _euroc(path: Path, **kw: Any) -> Sequence:
     return load_euroc(path, **kw)
 
 
+def _mcap(path: Path, **kw: Any) -> Sequence:
+    from .mcap import load_mcap
+
+    if kw.pop("calibration", None) is not None:
+        raise InputError(
+            "MCAP logs carry their calibration (metadata 'dhptam.sequence')", field="calibration"
+        )
+    return load_mcap(path, **kw)
+
+
 FORMATS: dict[str, Callable[..., Sequence]] = {
     "tum-vie": _tumvie,
     "vector": _vector,
     "vector-bag": _vector_bag,
     "mvsec": _mvsec,
     "euroc": _euroc,
+    "mcap": _mcap,
 }
 """Reader of each format name."""
 

@@ -1,8 +1,10 @@
-//! Readers and writers of solver problem files: BAL bundle-adjustment problems and g2o pose
-//! graphs. Malformed files give [`crate::Error::Parse`] naming the line, never a panic.
+//! Readers and writers of solver problem files (BAL bundle-adjustment problems, g2o pose
+//! graphs) and of MCAP logs ([`mcap`]). Malformed text files give [`crate::Error::Parse`]
+//! naming the line, malformed logs [`crate::Error::Format`] naming the channel; never a panic.
 
 pub mod bal;
 pub mod g2o;
+pub mod mcap;
 mod text;
 
 pub use bal::{BalObservation, BalProblem};

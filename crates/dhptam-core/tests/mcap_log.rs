@@ -1,0 +1,218 @@
+//! MCAP logs: round trips, time-range reads of events, and errors on damaged files.
+
+use dhptam_core::io::mcap::{
+    CameraCalibration, LogCompression, LogOptions, LogReader, LogWriter, PointCloud, PoseInFrame,
+    RawImage, SchemaKind,
+};
+use dhptam_core::Error;
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("dhptam-mcap-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+/// 10 000 events with repeated timestamps, spanning batch and chunk boundaries.
+fn events() -> (Vec<u16>, Vec<u16>, Vec<i64>, Vec<i8>) {
+    let n = 10_000;
+    let x = (0..n).map(|i| (i * 7 % 640) as u16).collect();
+    let y = (0..n).map(|i| (i * 13 % 480) as u16).collect();
+    let t = (0..n).map(|i| 1_000_000 + (i as i64 / 3) * 1_000).collect();
+    let p = (0..n).map(|i| (i % 2) as i8).collect();
+    (x, y, t, p)
+}
+
+fn write_log(path: &std::path::Path, compression: LogCompression) {
+    let options = LogOptions {
+        compression,
+        chunk_size_bytes: 16 * 1024,
+        batch_events: 1000,
+    };
+    let mut w = LogWriter::create(path, options).unwrap();
+    let (x, y, t, p) = events();
+    // Uneven appends: batches must not depend on how events arrive.
+    for (a, b) in [(0, 1), (1, 2500), (2500, 2500), (2500, 10_000)] {
+        w.add_events(
+            "/events/left",
+            "event_left",
+            &x[a..b],
+            &y[a..b],
+            &t[a..b],
+            &p[a..b],
+        )
+        .unwrap();
+    }
+    for k in 0..3 {
+        let image = RawImage {
+            t_ns: 1_000_000 + k * 50_000_000,
+            frame_id: "frame_left".into(),
+            width: 4,
+            height: 2,
+            encoding: "mono8".into(),
+            step: 4,
+            data: (0..8).map(|v| (v + k) as u8).collect(),
+        };
+        w.add_image("/frames/left", &image).unwrap();
+        w.add_pose(
+            "/ground_truth",
+            &PoseInFrame {
+                t_ns: image.t_ns,
+                frame_id: "world".into(),
+                translation: [k as f64, 0.5, -1.0],
+                quat_xyzw: [0.0, 0.0, 0.6, 0.8],
+            },
+        )
+        .unwrap();
+    }
+    w.add_calibration(
+        "/calibration/frame_left",
+        &CameraCalibration {
+            t_ns: 0,
+            frame_id: "frame_left".into(),
+            width: 4,
+            height: 2,
+            distortion_model: "kannala_brandt".into(),
+            d: vec![0.1, 0.2, 0.3, 0.4],
+            k: vec![100.0, 0.0, 2.0, 0.0, 100.0, 1.0, 0.0, 0.0, 1.0],
+            r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            p: vec![
+                100.0, 0.0, 2.0, 0.0, 0.0, 100.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0,
+            ],
+        },
+    )
+    .unwrap();
+    w.add_point_cloud(
+        "/slam/map",
+        &PointCloud {
+            t_ns: 200_000_000,
+            frame_id: "world".into(),
+            points: vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]],
+        },
+    )
+    .unwrap();
+    w.add_metadata("dhptam.test", [("k".to_string(), "v".to_string())].into())
+        .unwrap();
+    w.finish().unwrap();
+}
+
+#[test]
+fn events_round_trip_and_windows_match_a_linear_scan() {
+    for compression in [
+        LogCompression::Zstd,
+        LogCompression::Lz4,
+        LogCompression::None,
+    ] {
+        let path = tmp(&format!("events-{compression:?}.mcap"));
+        write_log(&path, compression);
+        let r = LogReader::open(&path).unwrap();
+        let (x, y, t, p) = events();
+        assert_eq!(r.event_count("/events/left").unwrap(), t.len());
+        assert_eq!(
+            r.event_time_range("/events/left").unwrap(),
+            (t[0], t[t.len() - 1] + 1)
+        );
+        let all = r.event_slice("/events/left", 0, usize::MAX).unwrap();
+        assert_eq!((all.x, all.y, all.t_ns, all.p), (x, y, t.clone(), p));
+        for (t0, t1) in [
+            (0, 1_000_000),
+            (1_000_000, 1_000_001),
+            (1_333_000, 2_000_500),
+            (1_999_000, 3_000_000),
+            (4_332_000, 9_000_000),
+            (5_000_000, 4_000_000),
+        ] {
+            let expected: Vec<i64> = t.iter().copied().filter(|&v| t0 <= v && v < t1).collect();
+            let window = r.event_window("/events/left", t0, t1).unwrap();
+            assert_eq!(window.t_ns, expected, "window [{t0}, {t1})");
+        }
+    }
+}
+
+#[test]
+fn foxglove_messages_round_trip() {
+    let path = tmp("messages.mcap");
+    write_log(&path, LogCompression::Zstd);
+    let r = LogReader::open(&path).unwrap();
+    let images = r.images("/frames/left", 1..3).unwrap();
+    assert_eq!(images.len(), 2);
+    assert_eq!(images[1].data, (2..10).map(|v| v as u8).collect::<Vec<_>>());
+    assert_eq!(
+        r.log_times("/frames/left", SchemaKind::RawImage).unwrap(),
+        vec![1_000_000, 51_000_000, 101_000_000]
+    );
+    let poses = r.poses("/ground_truth").unwrap();
+    assert_eq!(poses[2].translation, [2.0, 0.5, -1.0]);
+    assert_eq!(
+        r.calibrations("/calibration/frame_left").unwrap()[0].d,
+        vec![0.1, 0.2, 0.3, 0.4]
+    );
+    assert_eq!(
+        r.point_clouds("/slam/map").unwrap()[0].points[1],
+        [4.0, 5.0, 6.0]
+    );
+    assert_eq!(r.metadata("dhptam.test").unwrap().unwrap()["k"], "v");
+    assert!(r.metadata("absent").unwrap().is_none());
+    let info = &r.topics()["/frames/left"];
+    assert_eq!(
+        (info.schema_name.as_str(), info.message_encoding.as_str()),
+        ("foxglove.RawImage", "protobuf")
+    );
+}
+
+fn format_field(err: Error) -> (String, String) {
+    match err {
+        Error::Format { path, field, .. } => (path.display().to_string(), field),
+        other => panic!("expected a format error, got {other}"),
+    }
+}
+
+#[test]
+fn damaged_logs_name_the_file_and_the_channel() {
+    let path = tmp("good.mcap");
+    write_log(&path, LogCompression::Zstd);
+    let bytes = std::fs::read(&path).unwrap();
+
+    let truncated = tmp("truncated.mcap");
+    std::fs::write(&truncated, &bytes[..bytes.len() / 2]).unwrap();
+    let (p, field) = format_field(LogReader::open(&truncated).err().unwrap());
+    assert!(
+        p.ends_with("truncated.mcap") && field == "magic",
+        "{p} {field}"
+    );
+
+    let wrong = tmp("wrong.mcap");
+    let mut b = bytes.clone();
+    b[1] = b'X';
+    std::fs::write(&wrong, &b).unwrap();
+    let (_, field) = format_field(LogReader::open(&wrong).err().unwrap());
+    assert_eq!(field, "magic");
+
+    let r = LogReader::open(&path).unwrap();
+    let (p, field) = format_field(r.event_count("/events/right").unwrap_err());
+    assert!(p.ends_with("good.mcap"));
+    assert_eq!(field, "/events/right");
+    let (_, field) = format_field(r.poses("/frames/left").unwrap_err());
+    assert_eq!(field, "/frames/left");
+}
+
+#[test]
+fn a_writer_dropped_unfinished_leaves_nothing() {
+    let path = tmp("dropped.mcap");
+    {
+        let mut w = LogWriter::create(&path, LogOptions::default()).unwrap();
+        w.add_events("/events/left", "e", &[1], &[2], &[3], &[1])
+            .unwrap();
+        let err = w
+            .add_events("/events/left", "e", &[1], &[2], &[2], &[1])
+            .unwrap_err();
+        assert!(err.to_string().contains("non-decreasing"), "{err}");
+    }
+    assert!(!path.exists());
+    let dir = path.parent().unwrap();
+    let leftovers: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().starts_with("dropped.mcap"))
+        .collect();
+    assert!(leftovers.is_empty());
+}
