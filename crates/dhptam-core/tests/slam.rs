@@ -337,7 +337,12 @@ fn loop_pair() -> (Map, u64, u64) {
 }
 
 fn point_ids(map: &Map, kf: u64) -> Vec<u64> {
-    map.keyframes[&kf].points.iter().flatten().copied().collect()
+    map.keyframes[&kf]
+        .points
+        .iter()
+        .flatten()
+        .copied()
+        .collect()
 }
 
 #[test]
@@ -404,7 +409,10 @@ fn loop_verification_needs_both_directions_to_agree() {
     }
     let (check, m) = verify_loop(&bent, query, candidate, &calib, tc, lc).unwrap();
     eprintln!("inconsistent: {check:?}");
-    assert!(check.forward.1 >= need && check.backward.1 >= need, "{check:?}");
+    assert!(
+        check.forward.1 >= need && check.backward.1 >= need,
+        "{check:?}"
+    );
     let (r, _) = check.disagreement.unwrap();
     assert!(r > lc.max_disagreement_deg, "{check:?}");
     assert!(!check.accepted && m.is_none());
@@ -437,6 +445,21 @@ fn fusion_merges_duplicates_and_refinds_points() {
     assert!(map.keyframes[&b].covisible.is_empty());
     let (points_before, per_point_before) = (map.points.len(), observations_per_point(&map));
     let old_ids = point_ids(&map, b);
+    // Interrupted before it starts (a newer keyframe is waiting): nothing changes.
+    let stopped = std::sync::RwLock::new(map.clone());
+    let stop = std::sync::atomic::AtomicBool::new(true);
+    let report = fuse_and_refind(
+        &stopped,
+        b,
+        &o.calib,
+        &config.mapping,
+        &config.tracking,
+        &config.triangulation,
+        Some(&stop),
+    )
+    .unwrap();
+    assert!(report.interrupted && report.merged + report.refound == 0);
+    assert_eq!(stopped.into_inner().unwrap().points.len(), points_before);
     let lock = std::sync::RwLock::new(map);
     let report = fuse_and_refind(
         &lock,
@@ -456,7 +479,11 @@ fn fusion_merges_duplicates_and_refinds_points() {
     );
     assert_eq!(report.neighbours, 1);
     // Most of the second keyframe's points are duplicates of the first's landmarks.
-    assert!(2 * report.merged > old_ids.len(), "{report:?} of {}", old_ids.len());
+    assert!(
+        2 * report.merged > old_ids.len(),
+        "{report:?} of {}",
+        old_ids.len()
+    );
     assert!(report.refound > 20, "{report:?}");
     assert_eq!(map.points.len(), points_before - report.merged);
     assert!(observations_per_point(&map) > 1.2 * per_point_before);
@@ -582,9 +609,15 @@ fn fusion_joins_map_segments_after_reinitialisation() {
     assert!(totals.merged > 50, "{totals:?}");
     assert!(totals.refound > 0, "{totals:?}");
     assert!(n_on < n_off, "{n_on} points with fusion, {n_off} without");
-    assert!(per_on > per_off, "{per_on} observations per point vs {per_off}");
+    assert!(
+        per_on > per_off,
+        "{per_on} observations per point vs {per_off}"
+    );
     // The segments are joined: the last keyframe's neighbourhood reaches back past the glitch.
     assert!(!off.with_map(reaches_first_keyframe));
     assert!(on.with_map(reaches_first_keyframe));
-    assert!(ate_on <= ate_off * 1.05 + 1e-3, "ATE {ate_on} with fusion, {ate_off} without");
+    assert!(
+        ate_on <= ate_off * 1.05 + 1e-3,
+        "ATE {ate_on} with fusion, {ate_off} without"
+    );
 }

@@ -395,15 +395,8 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
         match current {
             Some(q) if q == old_point => {}
             Some(q) => {
-                let observers: Vec<(u64, u32)> = map
-                    .points
-                    .get(&q)
-                    .map(|p| p.observations.iter().map(|(a, b)| (*a, *b)).collect())
-                    .unwrap_or_default();
-                map.remove_point(q);
-                for (o, f) in observers {
-                    map.add_observation(o, f as usize, old_point);
-                }
+                // The old point keeps its id; `q` resolves to it (ids held by tracking).
+                map.merge_points(old_point, q);
             }
             None => map.add_observation(kf, feature, old_point),
         }

@@ -214,7 +214,12 @@ fn project_into(
     };
     let descriptors = t.descriptors.view();
     let options = match_options(tracking, descriptors.kind());
-    let grid = Grid::new(&t.keypoints, calib.width, calib.height, tracking.cell_px as f32);
+    let grid = Grid::new(
+        &t.keypoints,
+        calib.width,
+        calib.height,
+        tracking.cell_px as f32,
+    );
     let cam_from_world = t.world_from_cam.inverse();
     let centre = t.centre();
     let cos_max = tracking.max_view_angle_deg.to_radians().cos();
@@ -285,7 +290,12 @@ pub fn fuse_and_refind(
             return Ok(report);
         };
         let mut neighbours: Vec<u64> = k.best_covisible(cfg.fuse_neighbours as usize);
-        for (&id, _) in m.keyframes.range(..kf).rev().take(cfg.fuse_temporal as usize) {
+        for (&id, _) in m
+            .keyframes
+            .range(..kf)
+            .rev()
+            .take(cfg.fuse_temporal as usize)
+        {
             if !neighbours.contains(&id) {
                 neighbours.push(id);
             }
@@ -293,14 +303,20 @@ pub fn fuse_and_refind(
         report.neighbours = neighbours.len();
         let own = m.points_of(&[kf]);
         let mut proposals = Vec::new();
+        let stopped = || stop.is_some_and(|s| s.load(Ordering::Acquire));
         for &n in &neighbours {
-            if stop.is_some_and(|s| s.load(Ordering::Acquire)) {
+            if stopped() {
                 report.interrupted = true;
                 break;
             }
             proposals.extend(project_into(&m, n, &own, calib, cfg, tracking, tri));
-            let theirs = m.points_of(&[n]);
+        }
+        // The neighbours' points (each once, however many neighbours observe it) into `kf`.
+        if !report.interrupted && !stopped() {
+            let theirs = m.points_of(&neighbours);
             proposals.extend(project_into(&m, kf, &theirs, calib, cfg, tracking, tri));
+        } else {
+            report.interrupted = true;
         }
         (proposals, m.corrections)
     };
