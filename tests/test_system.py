@@ -42,6 +42,8 @@ def test_tracks_every_frame_with_noise_and_outliers() -> None:
     # Map points lie on the landmark cylinder (4-7 m from the first camera's axis).
     timing = system.timing()
     assert timing["track"]["count"] == 200 and timing["local_ba"]["count"] == len(kf_t)
+    # Duplicate fusion and re-finding run once per keyframe, before its bundle adjustment.
+    assert timing["fusion"]["count"] == len(kf_t)
 
 
 def test_binary_descriptors_track() -> None:

@@ -2,9 +2,12 @@
 //! (`slam::synthetic`, 5 500 landmarks, 0.5 px noise, 10 % outliers, 32-D float descriptors):
 //! - tracking one frame: stereo matching + local-map search + two motion-only refinements
 //!   (excluding feature extraction and keyframe insertion), after 60 frames of mapping;
+//!   The tracking row is repeated on a map built without the mapping fusion (the baseline);
+//! - fusion of duplicate points and re-finding for one keyframe, on a copy of the map;
 //! - local mapping for one keyframe (local BA over the window + culling), on a copy of the map;
 //! - loop detection for one keyframe without a loop (embedding, place query, verification);
-//! - loop detection + correction for the keyframe that closes the loop (verification,
+//! - loop detection + correction for the keyframe that closes the loop (verification by PnP in
+//!   both directions,
 //!   pose graph over all keyframes, point correction, fusion), on a copy of the map.
 //!
 //! `RAYON_NUM_THREADS=1 cargo bench -p dhptam-core --bench slam` (one core).
@@ -20,7 +23,7 @@ use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
 use dhptam_core::slam::tracking::{
     last_pose, stereo_match, track_local_map, StereoFrame, TrackContext,
 };
-use dhptam_core::slam::{local_mapping, FrameFeatures, Map, System};
+use dhptam_core::slam::{fuse_and_refind, local_mapping, FrameFeatures, Map, System};
 
 fn track(system: &mut System, f: &SyntheticFrame) {
     let left = FrameFeatures {
@@ -45,17 +48,29 @@ fn options(frames: usize, turns: f64) -> SyntheticOptions {
 }
 
 fn tracking(c: &mut Criterion) {
+    // The map built with the mapping fusion, and without it (the back-end before the fusion
+    // existed: the same tracking code, the baseline of the first row).
+    for fuse in [true, false] {
+        track_bench(c, fuse);
+    }
+}
+
+fn track_bench(c: &mut Criterion, fuse: bool) {
     let o = options(200, 0.5);
     let frames = generate(&o);
-    let config = Config::default();
+    let mut config = Config::default();
+    config.mapping.fuse = fuse;
     let mut system = System::new(o.calib, config.clone(), false).unwrap();
     frames[..60].iter().for_each(|f| track(&mut system, f));
     let f = &frames[60];
     eprintln!(
-        "tracking frame: {} left, {} right features",
+        "tracking frame: {} left, {} right features; map (fusion {fuse}): {} points, {:?}",
         f.left.keypoints.len() / 2,
-        f.right.keypoints.len() / 2
+        f.right.keypoints.len() / 2,
+        system.with_map(|m| m.points.len()),
+        system.fusion_totals(),
     );
+    let suffix = if fuse { "" } else { "_map_without_fusion" };
     let ctx = TrackContext {
         calib: &o.calib,
         cfg: &config.tracking,
@@ -71,7 +86,7 @@ fn tracking(c: &mut Criterion) {
     system.with_map(|map| {
         let predicted = state.velocity * last_pose(map, &state).unwrap().inverse();
         let mut g = c.benchmark_group("slam");
-        g.bench_function("track_frame_1000_features", |b| {
+        g.bench_function(format!("track_frame_1000_features{suffix}"), |b| {
             b.iter(|| {
                 let u_right = stereo_match(ctx.calib, ctx.cfg, ctx.tri, &lxy, ld, &rxy, rd);
                 let frame = StereoFrame {
@@ -85,15 +100,50 @@ fn tracking(c: &mut Criterion) {
                 t
             })
         });
-        g.bench_function("stereo_match_1000_features", |b| {
-            b.iter(|| stereo_match(ctx.calib, ctx.cfg, ctx.tri, &lxy, ld, &rxy, rd))
-        });
+        if fuse {
+            g.bench_function("stereo_match_1000_features", |b| {
+                b.iter(|| stereo_match(ctx.calib, ctx.cfg, ctx.tri, &lxy, ld, &rxy, rd))
+            });
+        }
         g.finish();
     });
+    if !fuse {
+        return;
+    }
     let map: Map = system.with_map(|m| m.clone());
     let kf = *map.keyframes.keys().last().unwrap();
     let mut g = c.benchmark_group("slam");
     g.sample_size(20);
+    let probe = RwLock::new(map.clone());
+    let report = fuse_and_refind(
+        &probe,
+        kf,
+        &o.calib,
+        &config.mapping,
+        &config.tracking,
+        &config.triangulation,
+        None,
+    )
+    .unwrap();
+    eprintln!("fusion of keyframe {kf} (already mapped once): {report:?}");
+    g.bench_function("fusion_per_keyframe", |b| {
+        b.iter_batched(
+            || RwLock::new(map.clone()),
+            |m| {
+                fuse_and_refind(
+                    &m,
+                    kf,
+                    &o.calib,
+                    &config.mapping,
+                    &config.tracking,
+                    &config.triangulation,
+                    None,
+                )
+                .unwrap()
+            },
+            BatchSize::LargeInput,
+        )
+    });
     g.bench_function("local_mapping_per_keyframe", |b| {
         b.iter_batched(
             || RwLock::new(map.clone()),

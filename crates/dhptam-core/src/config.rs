@@ -306,6 +306,19 @@ config_section! {
         min_observers: u32 = 2,
         /// Keyframes the tracker may queue for the mapping thread before it waits.
         queue: u32 = 8,
+        /// Before the bundle adjustment, fuse duplicate map points and re-find points: the new
+        /// keyframe's points are projected into its neighbour keyframes and theirs into it; a
+        /// projection matching a keypoint that observes another point merges the two points,
+        /// one matching a free keypoint adds the observation.
+        fuse: bool = true,
+        /// Most covisible keyframes searched by the fusion.
+        fuse_neighbours: u32 = 10,
+        /// Keyframes preceding the new one (by id) also searched, covisible or not: they link
+        /// a new map segment started after tracking loss to the previous one.
+        fuse_temporal: u32 = 2,
+        /// Largest distance between a point's projection and the keypoint it fuses with,
+        /// pixels (in the left image and, for stereo keypoints, in the right column).
+        fuse_radius_px: f64 = 4.0,
     }
 }
 
@@ -328,6 +341,13 @@ config_section! {
         ransac_iterations: u32 = 300,
         /// RANSAC seed (fixed: the synchronous mode gives the same results every run).
         seed: u64 = 7,
+        /// A loop is verified by PnP in both directions (the query's keypoints against the
+        /// candidate's map points and the candidate's keypoints against the query's); the two
+        /// relative poses `candidate_from_query` may differ in rotation by at most this,
+        /// degrees.
+        max_disagreement_deg: f64 = 2.0,
+        /// See `max_disagreement_deg`: largest difference in translation, metres.
+        max_disagreement_m: f64 = 0.1,
     }
 }
 // --- end SLAM back-end ---
@@ -393,6 +413,12 @@ impl MappingConfig {
         )?;
         check("mapping.queue", self.queue >= 1, "at least 1", self.queue)?;
         check(
+            "mapping.fuse_radius_px",
+            self.fuse_radius_px.is_finite() && self.fuse_radius_px > 0.0,
+            "a positive number",
+            self.fuse_radius_px,
+        )?;
+        check(
             "mapping.ba_iterations",
             self.ba_iterations >= 1,
             "at least 1",
@@ -420,6 +446,18 @@ impl LoopClosingConfig {
             self.ransac_threshold_px > 0.0,
             "a positive number",
             self.ransac_threshold_px,
+        )?;
+        check(
+            "loop_closing.max_disagreement_deg",
+            self.max_disagreement_deg >= 0.0,
+            "a non-negative number",
+            self.max_disagreement_deg,
+        )?;
+        check(
+            "loop_closing.max_disagreement_m",
+            self.max_disagreement_m >= 0.0,
+            "a non-negative number",
+            self.max_disagreement_m,
         )
     }
 }

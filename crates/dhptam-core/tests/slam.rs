@@ -4,10 +4,12 @@
 //! stays quick; `tests/test_system.py` runs the same scenarios at ≈ 600 features a frame.
 
 use dhptam_core::config::Config;
-use dhptam_core::geometry::Se3;
+use dhptam_core::geometry::{Se3, So3};
 use dhptam_core::matching::Descriptors;
+use dhptam_core::slam::loop_closing::verify_loop;
 use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
-use dhptam_core::slam::{FrameFeatures, System, TrackResult, TrackState};
+use dhptam_core::slam::tracking::{insert_keyframe, stereo_match, StereoFrame};
+use dhptam_core::slam::{fuse_and_refind, FrameFeatures, Map, System, TrackResult, TrackState};
 use nalgebra::{Matrix3, Vector3};
 
 fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
@@ -271,4 +273,351 @@ fn relocalises_after_a_jump_to_a_known_place() {
     let mut next = frames[31].clone();
     next.t_ns = frames[121].t_ns;
     assert_eq!(track(&mut system, &next).state, TrackState::Ok);
+}
+
+/// A keyframe inserted directly from a synthetic frame at `world_from_cam`, its stereo points
+/// triangulated anew (no association to existing points). `mono` keypoints (indices) lose
+/// their stereo match first, so they get no point.
+fn insert_frame(map: &mut Map, f: &SyntheticFrame, world_from_cam: Se3, mono: &[usize]) -> u64 {
+    let config = Config::default();
+    let calib = SyntheticOptions::default().calib;
+    let xy = |v: &[f32]| -> Vec<[f32; 2]> { v.chunks_exact(2).map(|c| [c[0], c[1]]).collect() };
+    let (lxy, rxy) = (xy(&f.left.keypoints), xy(&f.right.keypoints));
+    let ld = Descriptors::float(&f.left.descriptors, 32).unwrap();
+    let rd = Descriptors::float(&f.right.descriptors, 32).unwrap();
+    let mut u_right = stereo_match(
+        &calib,
+        &config.tracking,
+        &config.triangulation,
+        &lxy,
+        ld,
+        &rxy,
+        rd,
+    );
+    for &i in mono {
+        u_right[i] = f32::NAN;
+    }
+    let frame = StereoFrame {
+        t_ns: f.t_ns,
+        keypoints: lxy,
+        u_right,
+        descriptors: ld,
+    };
+    insert_keyframe(
+        map,
+        &frame,
+        world_from_cam,
+        &[],
+        &calib,
+        &config.triangulation,
+    )
+    .0
+}
+
+/// Two keyframes at the two ends of a loop (a bit more than one turn apart), each with its own
+/// points; the query's whole part of the map is displaced by a drift transform.
+fn loop_pair() -> (Map, u64, u64) {
+    let o = SyntheticOptions {
+        landmarks: 1500,
+        frames: 200,
+        turns: 1.05,
+        seed: 4,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let (first, last) = (&frames[0], &frames[frames.len() - 1]);
+    let drift = Se3::new(
+        So3::exp(&Vector3::new(0.0, 3f64.to_radians(), 0.0)),
+        Vector3::new(0.2, 0.1, -0.3),
+    );
+    let mut map = Map::default();
+    let candidate = insert_frame(&mut map, first, first.world_from_cam, &[]);
+    let query = insert_frame(&mut map, last, drift * last.world_from_cam, &[]);
+    (map, query, candidate)
+}
+
+fn point_ids(map: &Map, kf: u64) -> Vec<u64> {
+    map.keyframes[&kf]
+        .points
+        .iter()
+        .flatten()
+        .copied()
+        .collect()
+}
+
+#[test]
+fn loop_verification_needs_both_directions_to_agree() {
+    let config = Config::default();
+    let (lc, tc) = (&config.loop_closing, &config.tracking);
+    let calib = SyntheticOptions::default().calib;
+    let need = lc.min_inliers as usize;
+    let (map, query, candidate) = loop_pair();
+
+    // A true loop (under drift) passes both ways, the relative poses agree.
+    let (check, m) = verify_loop(&map, query, candidate, &calib, tc, lc).unwrap();
+    eprintln!("true loop: {check:?}");
+    assert!(check.accepted, "{check:?}");
+    assert!(check.forward.1 >= need && check.backward.1 >= need);
+    let (r, t) = check.disagreement.unwrap();
+    assert!(
+        r < 0.5 * lc.max_disagreement_deg && t < 0.5 * lc.max_disagreement_m,
+        "{check:?}"
+    );
+    let m = m.unwrap();
+    assert_eq!(m.candidate, candidate);
+
+    // The query's points scrambled (each takes another's position): the forward direction
+    // still passes, the backward one finds no pose → rejected.
+    let mut scrambled = map.clone();
+    let ids = point_ids(&scrambled, query);
+    let positions: Vec<Vector3<f64>> = ids.iter().map(|id| scrambled.points[id].position).collect();
+    for (k, id) in ids.iter().enumerate() {
+        scrambled.points.get_mut(id).unwrap().position = positions[(k * 7 + 3) % ids.len()];
+    }
+    let (check, m) = verify_loop(&scrambled, query, candidate, &calib, tc, lc).unwrap();
+    eprintln!("backward broken: {check:?}");
+    assert!(check.forward.1 >= need, "{check:?}");
+    assert_eq!(check.backward.1, 0, "{check:?}");
+    assert!(!check.accepted && m.is_none());
+
+    // The same with the candidate's points: backward passes, forward fails → rejected.
+    let mut scrambled = map.clone();
+    let ids = point_ids(&scrambled, candidate);
+    let positions: Vec<Vector3<f64>> = ids.iter().map(|id| scrambled.points[id].position).collect();
+    for (k, id) in ids.iter().enumerate() {
+        scrambled.points.get_mut(id).unwrap().position = positions[(k * 7 + 3) % ids.len()];
+    }
+    let (check, m) = verify_loop(&scrambled, query, candidate, &calib, tc, lc).unwrap();
+    eprintln!("forward broken: {check:?}");
+    assert_eq!(check.forward.1, 0, "{check:?}");
+    assert!(check.backward.1 >= need, "{check:?}");
+    assert!(!check.accepted && m.is_none());
+
+    // The query's points moved rigidly by 5° about the query camera's vertical axis, its pose
+    // not: both directions find a pose, but the relative poses disagree → rejected.
+    let mut bent = map.clone();
+    let q_pose = bent.keyframes[&query].world_from_cam;
+    let turn = q_pose
+        * Se3::new(
+            So3::exp(&Vector3::new(0.0, 5f64.to_radians(), 0.0)),
+            Vector3::zeros(),
+        )
+        * q_pose.inverse();
+    for id in point_ids(&bent, query) {
+        let p = bent.points.get_mut(&id).unwrap();
+        p.position = turn.transform_point(&p.position);
+    }
+    let (check, m) = verify_loop(&bent, query, candidate, &calib, tc, lc).unwrap();
+    eprintln!("inconsistent: {check:?}");
+    assert!(
+        check.forward.1 >= need && check.backward.1 >= need,
+        "{check:?}"
+    );
+    let (r, _) = check.disagreement.unwrap();
+    assert!(r > lc.max_disagreement_deg, "{check:?}");
+    assert!(!check.accepted && m.is_none());
+}
+
+fn observations_per_point(map: &Map) -> f64 {
+    let total: usize = map.points.values().map(|p| p.observations.len()).sum();
+    total as f64 / map.points.len() as f64
+}
+
+#[test]
+fn fusion_merges_duplicates_and_refinds_points() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 100,
+        turns: 0.25,
+        seed: 6,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let config = Config::default();
+    // Two keyframes five frames apart, inserted without association (as after tracking loss):
+    // every landmark both see is in the map twice. A quarter of the second keyframe's
+    // keypoints have no stereo match, so no point: those are for re-finding.
+    let mut map = Map::default();
+    let a = insert_frame(&mut map, &frames[0], frames[0].world_from_cam, &[]);
+    let n = frames[5].left.keypoints.len() / 2;
+    let mono: Vec<usize> = (0..n).filter(|i| i % 4 == 0).collect();
+    let b = insert_frame(&mut map, &frames[5], frames[5].world_from_cam, &mono);
+    assert!(map.keyframes[&b].covisible.is_empty());
+    let (points_before, per_point_before) = (map.points.len(), observations_per_point(&map));
+    let old_ids = point_ids(&map, b);
+    // Interrupted before it starts (a newer keyframe is waiting): nothing changes.
+    let stopped = std::sync::RwLock::new(map.clone());
+    let stop = std::sync::atomic::AtomicBool::new(true);
+    let report = fuse_and_refind(
+        &stopped,
+        b,
+        &o.calib,
+        &config.mapping,
+        &config.tracking,
+        &config.triangulation,
+        Some(&stop),
+    )
+    .unwrap();
+    assert!(report.interrupted && report.merged + report.refound == 0);
+    assert_eq!(stopped.into_inner().unwrap().points.len(), points_before);
+    let lock = std::sync::RwLock::new(map);
+    let report = fuse_and_refind(
+        &lock,
+        b,
+        &o.calib,
+        &config.mapping,
+        &config.tracking,
+        &config.triangulation,
+        None,
+    )
+    .unwrap();
+    let map = lock.into_inner().unwrap();
+    eprintln!(
+        "{report:?}: {points_before} → {} points, {per_point_before:.2} → {:.2} observations each",
+        map.points.len(),
+        observations_per_point(&map)
+    );
+    assert_eq!(report.neighbours, 1);
+    // Most of the second keyframe's points are duplicates of the first's landmarks.
+    assert!(
+        2 * report.merged > old_ids.len(),
+        "{report:?} of {}",
+        old_ids.len()
+    );
+    assert!(report.refound > 20, "{report:?}");
+    assert_eq!(map.points.len(), points_before - report.merged);
+    assert!(observations_per_point(&map) > 1.2 * per_point_before);
+    // The keyframes are now covisible through the fused points.
+    assert!(map.keyframes[&b].covisible[&a] as usize >= report.merged);
+    // Every fused-away id resolves to a live point that the second keyframe observes.
+    let gone: Vec<u64> = old_ids
+        .iter()
+        .copied()
+        .filter(|id| !map.points.contains_key(id))
+        .collect();
+    assert_eq!(gone.len(), report.merged);
+    for id in gone {
+        let live = map.resolve(id);
+        assert!(map.points[&live].observations.contains_key(&b));
+        assert!(map.points[&live].observations.contains_key(&a));
+    }
+    // Fused points are right: the merged observations in both keyframes are of one landmark
+    // (their keypoints agree with the point's projection within the fusion radius).
+    let r = config.mapping.fuse_radius_px + 2.0;
+    for p in map.points.values().filter(|p| p.observations.len() == 2) {
+        for (kf, &f) in &p.observations {
+            let k = &map.keyframes[kf];
+            let pc = k.world_from_cam.inverse().transform_point(&p.position);
+            let u = o.calib.fx * pc.x / pc.z + o.calib.cx;
+            let v = o.calib.fy * pc.y / pc.z + o.calib.cy;
+            let kp = k.keypoints[f as usize];
+            let e = ((u - kp[0] as f64).powi(2) + (v - kp[1] as f64).powi(2)).sqrt();
+            assert!(e < r, "point {} off by {e} px in keyframe {kf}", p.id);
+        }
+    }
+    // A keyframe observes each point once, and the slots agree with the observations.
+    for k in map.keyframes.values() {
+        for (f, p) in k.points.iter().enumerate() {
+            if let Some(p) = p {
+                assert_eq!(map.points[p].observations[&k.id] as usize, f);
+            }
+        }
+    }
+}
+
+/// Runs `frames` through a synchronous system; frames in `glitch` have their descriptors
+/// negated (left and right alike: stereo matching still works, matching to the map does
+/// not). Returns the ATE, the system, and the number of re-initialisations.
+fn run_with_glitch(
+    frames: &[SyntheticFrame],
+    glitch: std::ops::Range<usize>,
+    config: Config,
+) -> (f64, System, usize) {
+    let calib = SyntheticOptions::default().calib;
+    let mut system = System::new(calib, config, false).unwrap();
+    let mut restarts = 0;
+    for (i, f) in frames.iter().enumerate() {
+        let r = if glitch.contains(&i) {
+            let mut g = f.clone();
+            g.left.descriptors.iter_mut().for_each(|x| *x = -*x);
+            g.right.descriptors.iter_mut().for_each(|x| *x = -*x);
+            track(&mut system, &g)
+        } else {
+            track(&mut system, f)
+        };
+        assert_ne!(r.state, TrackState::Lost, "frame {i} lost");
+        if i > 0 && r.state == TrackState::Initialised {
+            restarts += 1;
+        }
+    }
+    let truth: Vec<Vector3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    (
+        ate(&positions(&system.trajectory()), &truth),
+        system,
+        restarts,
+    )
+}
+
+/// Whether the covisibility graph connects the last keyframe to the first.
+fn reaches_first_keyframe(m: &Map) -> bool {
+    let last = *m.keyframes.keys().last().unwrap();
+    let mut seen = vec![last];
+    let mut frontier = vec![last];
+    while let Some(k) = frontier.pop() {
+        for &c in m.keyframes[&k].covisible.keys() {
+            if !seen.contains(&c) {
+                seen.push(c);
+                frontier.push(c);
+            }
+        }
+    }
+    seen.contains(&0)
+}
+
+#[test]
+fn fusion_joins_map_segments_after_reinitialisation() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 90,
+        turns: 0.2,
+        seed: 9,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    // Relocalisation is switched off (no keyframe pair reaches a cosine of 1), so a frame that
+    // cannot be tracked starts a new map segment: the glitch frame one of its own, the frame
+    // after it another, whose points duplicate the first segment's landmarks.
+    let mut config = Config::default();
+    config.loop_closing.min_score = 1.0;
+    config.mapping.fuse = false;
+    let (ate_off, off, restarts) = run_with_glitch(&frames, 40..41, config.clone());
+    assert_eq!(restarts, 2);
+    config.mapping.fuse = true;
+    let (ate_on, on, restarts_on) = run_with_glitch(&frames, 40..41, config);
+    assert_eq!(restarts_on, 2);
+    let stats = |s: &System| s.with_map(|m| (m.points.len(), observations_per_point(m)));
+    let ((n_off, per_off), (n_on, per_on)) = (stats(&off), stats(&on));
+    let totals = on.fusion_totals();
+    eprintln!(
+        "without fusion: {n_off} points, {per_off:.2} observations each, ATE {ate_off:.4} m; \
+         with: {n_on} points, {per_on:.2} each, ATE {ate_on:.4} m; {totals:?}"
+    );
+    assert_eq!(off.fusion_totals().merged, 0);
+    assert!(totals.merged > 50, "{totals:?}");
+    assert!(totals.refound > 0, "{totals:?}");
+    assert!(n_on < n_off, "{n_on} points with fusion, {n_off} without");
+    assert!(
+        per_on > per_off,
+        "{per_on} observations per point vs {per_off}"
+    );
+    // The segments are joined: the last keyframe's neighbourhood reaches back past the glitch.
+    assert!(!off.with_map(reaches_first_keyframe));
+    assert!(on.with_map(reaches_first_keyframe));
+    assert!(
+        ate_on <= ate_off * 1.05 + 1e-3,
+        "ATE {ate_on} with fusion, {ate_off} without"
+    );
 }

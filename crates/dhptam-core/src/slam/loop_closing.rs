@@ -2,8 +2,10 @@
 //!
 //! Every keyframe's embedding (normalised mean descriptor) goes into a [`PlaceDatabase`].
 //! A new keyframe queries it, skipping itself, its covisible keyframes and the most recent
-//! ones; each candidate is verified by matching the keyframe's descriptors against the map
-//! points around the candidate and RANSAC PnP on those 3-D–2-D pairs. An accepted loop adds
+//! ones; each candidate is verified by RANSAC PnP in both directions (the keyframe's keypoints
+//! against the map points around the candidate, and the candidate's keypoints against the map
+//! points around the keyframe), accepted only when both succeed and the relative poses they
+//! imply agree ([`verify_loop`]). An accepted loop adds
 //! an edge to a pose graph over all keyframes (odometry edges: the relative poses before the
 //! correction, between consecutive and strongly covisible keyframes), which is optimised;
 //! map points move with the keyframe that created them, and the loop keyframe's matched
@@ -40,27 +42,43 @@ pub struct PlaceMatch {
     pub pairs: Vec<(usize, u64)>,
 }
 
-/// Matches query descriptors to the points around `candidate` and verifies by RANSAC PnP.
-pub fn verify(
+/// One direction of a verification: descriptor matches of keypoints to map points, and the
+/// RANSAC PnP pose with its inliers (`None` when there were too few matches or no pose).
+struct Direction {
+    /// Descriptor matches that passed the distance and ratio tests.
+    matches: usize,
+    /// `cam_from_world` of the camera of the keypoints and its inlier pairs
+    /// (keypoint index, map point id).
+    pose: Option<(Se3, Vec<(usize, u64)>)>,
+}
+
+impl Direction {
+    fn inliers(&self) -> usize {
+        self.pose.as_ref().map_or(0, |p| p.1.len())
+    }
+}
+
+/// Matches the keypoints' descriptors to the map points `ids` and runs RANSAC PnP on the
+/// 3-D–2-D pairs.
+#[allow(clippy::too_many_arguments)]
+fn match_and_solve(
     map: &Map,
-    candidate: u64,
+    ids: &[u64],
     keypoints: &[[f32; 2]],
     descriptors: Descriptors,
     calib: &StereoCalibration,
     tracking: &TrackingConfig,
     cfg: &LoopClosingConfig,
-) -> Result<Option<PlaceMatch>> {
-    let Some(c) = map.keyframes.get(&candidate) else {
-        return Ok(None);
+) -> Result<Direction> {
+    let none = |matches| Direction {
+        matches,
+        pose: None,
     };
-    let mut around = vec![candidate];
-    around.extend(c.best_covisible(CANDIDATE_NEIGHBOURS));
-    let ids = map.points_of(&around);
     if ids.len() < cfg.min_inliers as usize {
-        return Ok(None);
+        return Ok(none(0));
     }
     let mut train = OwnedDescriptors::new(descriptors.kind(), descriptors.width());
-    for id in &ids {
+    for id in ids {
         train.push(map.points[id].descriptor.view())?;
     }
     let train = train.view();
@@ -73,11 +91,7 @@ pub fn verify(
         })
         .collect();
     if pairs.len() < cfg.min_inliers as usize {
-        log::debug!(
-            "place: candidate {candidate}: {} descriptor matches",
-            pairs.len()
-        );
-        return Ok(None);
+        return Ok(none(pairs.len()));
     }
     let points: Vec<Vector3<f64>> = pairs.iter().map(|p| map.points[&p.1].position).collect();
     let pixels: Vec<Vector2<f64>> = pairs
@@ -96,20 +110,148 @@ pub fn verify(
             seed: cfg.seed,
         },
     )?;
+    let matches = pairs.len();
     let Some(pnp) = pnp.filter(|p| p.inlier_count >= cfg.min_inliers as usize) else {
-        log::debug!("place: candidate {candidate}: PnP found no pose with enough inliers");
-        return Ok(None);
+        return Ok(none(matches));
     };
     let inliers = pairs
         .into_iter()
         .zip(&pnp.inliers)
         .filter_map(|(p, &ok)| ok.then_some(p))
         .collect();
-    Ok(Some(PlaceMatch {
+    Ok(Direction {
+        matches,
+        pose: Some((pnp.cam_from_world, inliers)),
+    })
+}
+
+/// Map points of keyframe `kf` and of its most covisible neighbours.
+fn neighbourhood_points(map: &Map, kf: u64) -> Vec<u64> {
+    let Some(k) = map.keyframes.get(&kf) else {
+        return Vec::new();
+    };
+    let mut around = vec![kf];
+    around.extend(k.best_covisible(CANDIDATE_NEIGHBOURS));
+    map.points_of(&around)
+}
+
+/// Matches query descriptors to the points around `candidate` and verifies by RANSAC PnP (one
+/// direction: what relocalisation of a frame, which has no map points, can do).
+pub fn verify(
+    map: &Map,
+    candidate: u64,
+    keypoints: &[[f32; 2]],
+    descriptors: Descriptors,
+    calib: &StereoCalibration,
+    tracking: &TrackingConfig,
+    cfg: &LoopClosingConfig,
+) -> Result<Option<PlaceMatch>> {
+    let ids = neighbourhood_points(map, candidate);
+    let d = match_and_solve(map, &ids, keypoints, descriptors, calib, tracking, cfg)?;
+    let matches = d.matches;
+    match d.pose {
+        Some((cam_from_world, pairs)) => Ok(Some(PlaceMatch {
+            candidate,
+            cam_from_world,
+            pairs,
+        })),
+        None => {
+            log::debug!("place: candidate {candidate}: {matches} descriptor matches, no PnP pose");
+            Ok(None)
+        }
+    }
+}
+
+/// The numbers behind a loop verification (both directions), for logging and tests.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LoopCheck {
+    /// Query keyframe.
+    pub query: u64,
+    /// Candidate keyframe.
+    pub candidate: u64,
+    /// Forward: descriptor matches of the query's keypoints to the candidate's neighbourhood
+    /// points, and PnP inliers (0 when PnP failed).
+    pub forward: (usize, usize),
+    /// Backward: descriptor matches of the candidate's keypoints to the query's neighbourhood
+    /// points, and PnP inliers (0 when PnP failed).
+    pub backward: (usize, usize),
+    /// Disagreement of the two relative poses `candidate_from_query`, rotation in degrees and
+    /// translation in metres; `None` unless both directions found a pose.
+    pub disagreement: Option<(f64, f64)>,
+    /// Whether the loop is accepted: both directions found a pose and they agree within
+    /// `max_disagreement_deg` / `max_disagreement_m`.
+    pub accepted: bool,
+}
+
+/// Verifies a loop between keyframes `query` and `candidate` by RANSAC PnP in both directions:
+/// the query's keypoints against the map points around the candidate (the query's pose in the
+/// candidate's part of the map), and the candidate's keypoints against the map points around
+/// the query (the candidate's pose in the query's part). Each gives the relative pose
+/// `candidate_from_query` in its own part of the map; the loop is accepted only when both
+/// directions succeed and the two agree. Returns the check's numbers and, when accepted, the
+/// forward match (used for the correction).
+pub fn verify_loop(
+    map: &Map,
+    query: u64,
+    candidate: u64,
+    calib: &StereoCalibration,
+    tracking: &TrackingConfig,
+    cfg: &LoopClosingConfig,
+) -> Result<(LoopCheck, Option<PlaceMatch>)> {
+    let mut check = LoopCheck {
+        query,
         candidate,
-        cam_from_world: pnp.cam_from_world,
-        pairs: inliers,
-    }))
+        forward: (0, 0),
+        backward: (0, 0),
+        disagreement: None,
+        accepted: false,
+    };
+    let (Some(q), Some(c)) = (map.keyframes.get(&query), map.keyframes.get(&candidate)) else {
+        return Ok((check, None));
+    };
+    let ids = neighbourhood_points(map, candidate);
+    let forward = match_and_solve(
+        map,
+        &ids,
+        &q.keypoints,
+        q.descriptors.view(),
+        calib,
+        tracking,
+        cfg,
+    )?;
+    check.forward = (forward.matches, forward.inliers());
+    let ids = neighbourhood_points(map, query);
+    let backward = match_and_solve(
+        map,
+        &ids,
+        &c.keypoints,
+        c.descriptors.view(),
+        calib,
+        tracking,
+        cfg,
+    )?;
+    check.backward = (backward.matches, backward.inliers());
+    let (Some((q_cam_from_world, pairs)), Some((c_cam_from_world, _))) =
+        (forward.pose, backward.pose)
+    else {
+        return Ok((check, None));
+    };
+    // Forward: the query placed in the candidate's part of the map.
+    let c_from_q_forward = c.world_from_cam.inverse() * q_cam_from_world.inverse();
+    // Backward: the candidate placed in the query's part of the map.
+    let c_from_q_backward = c_cam_from_world * q.world_from_cam;
+    let error = c_from_q_forward.inverse() * c_from_q_backward;
+    let rotation_deg = error.rotation.log().norm().to_degrees();
+    let translation_m = error.translation.norm();
+    check.disagreement = Some((rotation_deg, translation_m));
+    check.accepted =
+        rotation_deg <= cfg.max_disagreement_deg && translation_m <= cfg.max_disagreement_m;
+    let m = check.accepted.then_some(PlaceMatch {
+        candidate,
+        cam_from_world: q_cam_from_world,
+        pairs,
+    });
+    Ok((check, m))
 }
 
 /// Looks for a loop of keyframe `kf` (adding its embedding to `db` afterwards) and closes it.
@@ -144,27 +286,27 @@ pub fn detect_and_close(
         }
         let mut found = None;
         for (c, score) in candidates {
-            let v = verify(
-                &map,
-                c,
-                &k.keypoints,
-                k.descriptors.view(),
-                calib,
-                tracking,
-                cfg,
-            )?;
-            match v {
-                Some(m) => {
-                    log::info!(
-                        "loop: keyframe {kf} matches keyframe {c} (score {score:.3}, {} PnP inliers)",
-                        m.pairs.len()
-                    );
-                    found = Some(m);
-                    break;
-                }
-                None => {
-                    log::info!("loop: keyframe {kf}: candidate {c} (score {score:.3}) rejected")
-                }
+            let (check, m) = verify_loop(&map, kf, c, calib, tracking, cfg)?;
+            let agreement = match check.disagreement {
+                Some((r, t)) => format!(
+                    "relative poses differ by {r:.2} deg / {t:.3} m (limits {:.2} deg / {:.3} m)",
+                    cfg.max_disagreement_deg, cfg.max_disagreement_m
+                ),
+                None => "no relative pose to compare".to_string(),
+            };
+            log::info!(
+                "loop: keyframe {kf}: candidate {c} (score {score:.3}) {}: forward {} matches / {} \
+                 PnP inliers, backward {} matches / {} PnP inliers (at least {} needed), {agreement}",
+                if check.accepted { "accepted" } else { "rejected" },
+                check.forward.0,
+                check.forward.1,
+                check.backward.0,
+                check.backward.1,
+                cfg.min_inliers,
+            );
+            if let Some(m) = m {
+                found = Some(m);
+                break;
             }
         }
         found
@@ -253,15 +395,8 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
         match current {
             Some(q) if q == old_point => {}
             Some(q) => {
-                let observers: Vec<(u64, u32)> = map
-                    .points
-                    .get(&q)
-                    .map(|p| p.observations.iter().map(|(a, b)| (*a, *b)).collect())
-                    .unwrap_or_default();
-                map.remove_point(q);
-                for (o, f) in observers {
-                    map.add_observation(o, f as usize, old_point);
-                }
+                // The old point keeps its id; `q` resolves to it (ids held by tracking).
+                map.merge_points(old_point, q);
             }
             None => map.add_observation(kf, feature, old_point),
         }

@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use nalgebra::Vector3;
 
 use crate::geometry::Se3;
-use crate::matching::{OwnedDescriptor, OwnedDescriptors};
+use crate::matching::{distance, OwnedDescriptor, OwnedDescriptors};
 
 /// A keyframe: a tracked stereo frame kept in the map.
 #[derive(Clone, Debug)]
@@ -56,7 +56,8 @@ pub struct MapPoint {
     pub id: u64,
     /// Position in the world frame, metres.
     pub position: Vector3<f64>,
-    /// Representative descriptor (the one of the observation that created the point).
+    /// Representative descriptor: the one of the observation that created the point; after a
+    /// fusion, the observation's descriptor closest (median distance) to the others'.
     pub descriptor: OwnedDescriptor,
     /// Observations: keyframe id → keypoint index in that keyframe.
     pub observations: BTreeMap<u64, u32>,
@@ -96,6 +97,9 @@ pub struct Map {
     /// Loop corrections applied so far: a bundle adjustment prepared before a correction
     /// discards its result.
     pub corrections: u64,
+    /// Points fused into others: removed id → the id that absorbed it. An id held across a
+    /// lock release (the tracker's matches) is looked up with [`Map::resolve`]; not saved.
+    pub replaced: BTreeMap<u64, u64>,
 }
 
 impl Map {
@@ -106,10 +110,24 @@ impl Map {
             .map(|kf| kf.world_from_cam * record.kf_from_cam)
     }
 
-    /// Adds the observation (keyframe, keypoint) → point and updates covisibility.
-    /// Does nothing if the keyframe or point is missing or the point is already observed
-    /// by this keyframe.
+    /// The id a point lives on under: `point` itself, or the point it was fused into.
+    pub fn resolve(&self, point: u64) -> u64 {
+        let mut id = point;
+        // Chains are short (one link per fusion); the bound guards against a corrupt table.
+        for _ in 0..64 {
+            match self.replaced.get(&id) {
+                Some(&next) => id = next,
+                None => break,
+            }
+        }
+        id
+    }
+
+    /// Adds the observation (keyframe, keypoint) → point and updates covisibility; a point
+    /// fused into another (see [`Map::resolve`]) is replaced by that one. Does nothing if the
+    /// keyframe or point is missing or the point is already observed by this keyframe.
     pub fn add_observation(&mut self, kf: u64, feature: usize, point: u64) {
+        let point = self.resolve(point);
         let Some(p) = self.points.get_mut(&point) else {
             return;
         };
@@ -164,6 +182,69 @@ impl Map {
             self.remove_observation(kf, point);
         }
         self.points.remove(&point);
+    }
+
+    /// Fuses point `drop` into point `keep` (two estimates of one landmark): `drop`'s
+    /// observations move to `keep` (a keyframe observing both keeps its observation of
+    /// `keep`), `drop` is removed and recorded in [`Map::replaced`], and `keep`'s normal and
+    /// representative descriptor are recomputed. `keep`'s position stays. Returns `false`
+    /// (and changes nothing) when either point is missing or they are the same.
+    pub fn merge_points(&mut self, keep: u64, drop: u64) -> bool {
+        if keep == drop || !self.points.contains_key(&keep) {
+            return false;
+        }
+        let Some(d) = self.points.get(&drop) else {
+            return false;
+        };
+        let moved: Vec<(u64, u32)> = d.observations.iter().map(|(&k, &f)| (k, f)).collect();
+        for (kf, feature) in moved {
+            self.remove_observation(kf, drop);
+            self.add_observation(kf, feature as usize, keep);
+        }
+        self.points.remove(&drop);
+        self.replaced.insert(drop, keep);
+        self.update_descriptor(keep);
+        self.update_normal(keep);
+        true
+    }
+
+    /// Sets a point's representative descriptor to the observation descriptor with the
+    /// smallest median distance to the other observations' descriptors.
+    pub fn update_descriptor(&mut self, point: u64) {
+        let Some(p) = self.points.get(&point) else {
+            return;
+        };
+        let rows: Vec<_> = p
+            .observations
+            .iter()
+            .filter_map(|(kf, &f)| {
+                let k = self.keyframes.get(kf)?;
+                ((f as usize) < k.descriptors.len()).then(|| k.descriptors.view().row(f as usize))
+            })
+            .collect();
+        if rows.len() < 2 {
+            return;
+        }
+        let mut best: Option<(f32, usize)> = None;
+        for (i, a) in rows.iter().enumerate() {
+            let mut d: Vec<f32> = rows
+                .iter()
+                .enumerate()
+                .filter(|(j, _)| *j != i)
+                .map(|(_, b)| distance(*a, *b))
+                .collect();
+            d.sort_by(f32::total_cmp);
+            let median = d[d.len() / 2];
+            if best.is_none_or(|(m, _)| median < m) {
+                best = Some((median, i));
+            }
+        }
+        if let Some((_, i)) = best {
+            let descriptor = rows[i].to_owned();
+            if let Some(p) = self.points.get_mut(&point) {
+                p.descriptor = descriptor;
+            }
+        }
     }
 
     /// Recomputes a point's mean viewing direction from its observers' centres.

@@ -1,17 +1,21 @@
-//! Local mapping: bundle adjustment of a sliding window of covisible keyframes (older
-//! observers held fixed), removal of outlier observations, and culling of points that too few
-//! keyframes observe.
+//! Local mapping: fusion of duplicate map points and re-finding of points in neighbouring
+//! keyframes ([`fuse_and_refind`]), bundle adjustment of a sliding window of covisible
+//! keyframes (older observers held fixed), removal of outlier observations, and culling of
+//! points that too few keyframes observe. Each step can be interrupted by a newer keyframe.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::RwLock;
 
 use nalgebra::{Vector2, Vector3};
+use rayon::prelude::*;
 
 use super::map::Map;
+use super::tracking::{match_options, Grid};
 use super::{read_lock, write_lock, StereoCalibration};
 use crate::config::{MappingConfig, TrackingConfig, TriangulationConfig};
 use crate::error::Result;
+use crate::matching::best_two;
 use crate::solver::{
     solve_stereo_ba, BaKeyframe, BaObservation, LmOptions, Loss, StereoBaOptions, Termination,
 };
@@ -165,5 +169,213 @@ pub fn local_mapping(
         }
     }
     log::debug!("mapping: keyframe {kf}: {report:?}");
+    Ok(report)
+}
+
+/// What one fusion step did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct FusionReport {
+    /// Neighbour keyframes searched.
+    pub neighbours: usize,
+    /// Duplicate points fused into others.
+    pub merged: usize,
+    /// Observations added to points re-found in keyframes that did not observe them.
+    pub refound: usize,
+    /// Whether the search was interrupted by a newer keyframe (what was found until then is
+    /// applied).
+    pub interrupted: bool,
+}
+
+/// A projection of a map point matched to a keypoint of a keyframe.
+#[derive(Clone, Copy, Debug)]
+struct Proposal {
+    keyframe: u64,
+    feature: usize,
+    point: u64,
+    distance: f32,
+}
+
+/// Projects `points` into keyframe `target` and matches each to the keypoints within
+/// `cfg.fuse_radius_px` of its projection (and of its predicted right column for stereo
+/// keypoints), by descriptor distance and ratio test. Points `target` already observes are
+/// skipped.
+#[allow(clippy::too_many_arguments)]
+fn project_into(
+    map: &Map,
+    target: u64,
+    points: &[u64],
+    calib: &StereoCalibration,
+    cfg: &MappingConfig,
+    tracking: &TrackingConfig,
+    tri: &TriangulationConfig,
+) -> Vec<Proposal> {
+    let Some(t) = map.keyframes.get(&target) else {
+        return Vec::new();
+    };
+    let descriptors = t.descriptors.view();
+    let options = match_options(tracking, descriptors.kind());
+    let grid = Grid::new(
+        &t.keypoints,
+        calib.width,
+        calib.height,
+        tracking.cell_px as f32,
+    );
+    let cam_from_world = t.world_from_cam.inverse();
+    let centre = t.centre();
+    let cos_max = tracking.max_view_angle_deg.to_radians().cos();
+    let (w, h) = (calib.width as f64, calib.height as f64);
+    let radius = cfg.fuse_radius_px as f32;
+    points
+        .par_iter()
+        .filter_map(|&id| {
+            let p = map.points.get(&id)?;
+            if p.observations.contains_key(&target) {
+                return None;
+            }
+            let pc = cam_from_world.transform_point(&p.position);
+            if pc.z < tri.min_depth_m || pc.z > tri.max_depth_m {
+                return None;
+            }
+            let u = calib.fx * pc.x / pc.z + calib.cx;
+            let v = calib.fy * pc.y / pc.z + calib.cy;
+            if !(u >= 0.0 && v >= 0.0 && u < w && v < h) {
+                return None;
+            }
+            let ray = p.position - centre;
+            if ray.dot(&p.normal) < cos_max * ray.norm() {
+                return None;
+            }
+            let ur = (u - calib.fx * calib.baseline_m / pc.z) as f32;
+            let (u, v) = (u as f32, v as f32);
+            let candidates = grid.near(&t.keypoints, u, v, radius).filter(|&i| {
+                let m = t.u_right[i];
+                !m.is_finite() || (m - ur).abs() <= radius
+            });
+            let (i, best, second) = best_two(p.descriptor.view(), descriptors, candidates)?;
+            (best <= options.max_distance && best < options.ratio * second).then_some(Proposal {
+                keyframe: target,
+                feature: i,
+                point: id,
+                distance: best,
+            })
+        })
+        .collect()
+}
+
+/// Fuses duplicate map points and re-finds points around keyframe `kf` (before its local
+/// bundle adjustment). The neighbours are `kf`'s `fuse_neighbours` most covisible keyframes
+/// and the `fuse_temporal` keyframes before it. `kf`'s points are projected into each
+/// neighbour and each neighbour's points into `kf` ([`MappingConfig::fuse_radius_px`],
+/// descriptor thresholds of tracking). A projection that matches a keypoint observing another
+/// point fuses the two (the point with more observations, or the older, keeps its id; the
+/// other id resolves to it through [`Map::resolve`]); one that matches a free keypoint adds
+/// the observation. Pairs that some keyframe observes both of are distinct and left alone.
+/// The search runs under a read lock and checks `stop` between keyframes; the changes are
+/// applied under the write lock, re-checked against the map as it is then (and dropped if a
+/// loop correction intervened).
+#[allow(clippy::too_many_arguments)]
+pub fn fuse_and_refind(
+    map: &RwLock<Map>,
+    kf: u64,
+    calib: &StereoCalibration,
+    cfg: &MappingConfig,
+    tracking: &TrackingConfig,
+    tri: &TriangulationConfig,
+    stop: Option<&AtomicBool>,
+) -> Result<FusionReport> {
+    let mut report = FusionReport::default();
+    let (proposals, epoch) = {
+        let m = read_lock(map);
+        let Some(k) = m.keyframes.get(&kf) else {
+            return Ok(report);
+        };
+        let mut neighbours: Vec<u64> = k.best_covisible(cfg.fuse_neighbours as usize);
+        for (&id, _) in m
+            .keyframes
+            .range(..kf)
+            .rev()
+            .take(cfg.fuse_temporal as usize)
+        {
+            if !neighbours.contains(&id) {
+                neighbours.push(id);
+            }
+        }
+        report.neighbours = neighbours.len();
+        let own = m.points_of(&[kf]);
+        let mut proposals = Vec::new();
+        let stopped = || stop.is_some_and(|s| s.load(Ordering::Acquire));
+        for &n in &neighbours {
+            if stopped() {
+                report.interrupted = true;
+                break;
+            }
+            proposals.extend(project_into(&m, n, &own, calib, cfg, tracking, tri));
+        }
+        // The neighbours' points (each once, however many neighbours observe it) into `kf`.
+        if !report.interrupted && !stopped() {
+            let theirs = m.points_of(&neighbours);
+            proposals.extend(project_into(&m, kf, &theirs, calib, cfg, tracking, tri));
+        } else {
+            report.interrupted = true;
+        }
+        (proposals, m.corrections)
+    };
+    // One proposal per keypoint: the closest descriptor (ties: the lower point id).
+    let mut best: BTreeMap<(u64, usize), Proposal> = BTreeMap::new();
+    for p in proposals {
+        match best.get(&(p.keyframe, p.feature)) {
+            Some(b) if (b.distance, b.point) <= (p.distance, p.point) => {}
+            _ => {
+                best.insert((p.keyframe, p.feature), p);
+            }
+        }
+    }
+    let mut m = write_lock(map);
+    if m.corrections != epoch {
+        log::info!("mapping: keyframe {kf}: a loop correction intervened; fusion discarded");
+        return Ok(report);
+    }
+    for p in best.into_values() {
+        let point = m.resolve(p.point);
+        let Some(observers) = m.points.get(&point).map(|x| x.observations.clone()) else {
+            continue;
+        };
+        if observers.contains_key(&p.keyframe) {
+            continue;
+        }
+        let Some(slot) = m
+            .keyframes
+            .get(&p.keyframe)
+            .and_then(|k| k.points.get(p.feature).copied())
+        else {
+            continue;
+        };
+        match slot.map(|q| m.resolve(q)) {
+            None => {
+                m.add_observation(p.keyframe, p.feature, point);
+                report.refound += 1;
+            }
+            Some(other) if other == point => {}
+            Some(other) => {
+                let Some(theirs) = m.points.get(&other).map(|x| x.observations.clone()) else {
+                    continue;
+                };
+                if observers.keys().any(|k| theirs.contains_key(k)) {
+                    continue;
+                }
+                let (keep, drop) = if (theirs.len(), std::cmp::Reverse(other))
+                    >= (observers.len(), std::cmp::Reverse(point))
+                {
+                    (other, point)
+                } else {
+                    (point, other)
+                };
+                if m.merge_points(keep, drop) {
+                    report.merged += 1;
+                }
+            }
+        }
+    }
+    log::debug!("mapping: keyframe {kf}: fusion {report:?}");
     Ok(report)
 }

@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
-use super::mapping::local_mapping;
+use super::mapping::{fuse_and_refind, local_mapping};
 use super::tracking::{
     bootstrap, commit_tracked, last_pose, reinitialise, stereo_match, track_local_map, StereoFrame,
     TrackContext, TrackerState,
@@ -67,6 +67,17 @@ pub(crate) struct Shared {
     pub(crate) config: Config,
     /// Keyframe embeddings for loop detection and relocalisation.
     pub(crate) place: Mutex<PlaceDatabase>,
+    /// Running totals of the mapping fusion.
+    pub(crate) fusion: Mutex<FusionTotals>,
+}
+
+/// Running totals of the mapping thread's fusion of duplicate points and re-finding.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FusionTotals {
+    /// Duplicate map points fused into others.
+    pub merged: u64,
+    /// Observations added by re-finding points in keyframes.
+    pub refound: u64,
 }
 
 impl Shared {
@@ -86,6 +97,27 @@ impl Shared {
     /// the tracker's estimates).
     pub(crate) fn map_keyframe(&self, kf: u64, stop: Option<&AtomicBool>) {
         let c = &self.config;
+        if c.mapping.fuse {
+            let r = self.time("fusion", || {
+                fuse_and_refind(
+                    &self.map,
+                    kf,
+                    &self.calib,
+                    &c.mapping,
+                    &c.tracking,
+                    &c.triangulation,
+                    stop,
+                )
+            });
+            match r {
+                Ok(report) => {
+                    let mut t = lock(&self.fusion);
+                    t.merged += report.merged as u64;
+                    t.refound += report.refound as u64;
+                }
+                Err(e) => log::warn!("mapping: keyframe {kf}: fusion failed: {e}"),
+            }
+        }
         let r = self.time("local_ba", || {
             local_mapping(
                 &self.map,
@@ -177,6 +209,7 @@ impl System {
             calib,
             config,
             place: Mutex::new(PlaceDatabase::new()),
+            fusion: Mutex::new(FusionTotals::default()),
         });
         let mut system = Self {
             shared,
@@ -466,6 +499,11 @@ impl System {
             .iter()
             .map(|(k, v)| (k.to_string(), *v))
             .collect()
+    }
+
+    /// Totals of the fusion of duplicate points and of re-finding, since the start.
+    pub fn fusion_totals(&self) -> FusionTotals {
+        *lock(&self.shared.fusion)
     }
 
     /// The tracker's state (last frame, velocity, reference keyframe).
