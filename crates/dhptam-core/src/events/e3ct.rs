@@ -251,13 +251,13 @@ pub fn e3ct_into(
     let kernel = Kernel::new(params, t_start_ns, t_end_ns);
     let off_offset = match params.polarity {
         PolarityMode::Both => 0,
-        PolarityMode::Split => params.channels,
+        PolarityMode::Split => params.channels as u64,
     };
     let bands = h.div_ceil(rows_per_band);
-    // Band of each row and the offset of the row's first value inside its band.
-    let row_band: Vec<u32> = (0..h).map(|r| (r / rows_per_band) as u32).collect();
-    let row_offset: Vec<u32> = (0..h)
-        .map(|r| ((r % rows_per_band) * row_values) as u32)
+    // Band of each row (high 32 bits) and the offset of the row's first value inside its
+    // band (low 32 bits).
+    let row_place: Vec<u64> = (0..h)
+        .map(|r| (((r / rows_per_band) as u64) << 32) | ((r % rows_per_band) * row_values) as u64)
         .collect();
     let threads = rayon::current_num_threads();
     let chunk_len = n.div_ceil(threads).max(MIN_CHUNK_EVENTS);
@@ -270,7 +270,7 @@ pub fn e3ct_into(
         .map(|k| {
             let mut count = vec![0usize; bands];
             for &y in &events.y[chunk_range(k)] {
-                count[row_band[usize::from(y)] as usize] += 1;
+                count[(row_place[usize::from(y)] >> 32) as usize] += 1;
             }
             count
         })
@@ -304,25 +304,34 @@ pub fn e3ct_into(
         .for_each(|(k, (band_pieces, table))| {
             let range = chunk_range(k);
             table.clear();
-            let mut cursor = vec![0usize; bands];
+            // Write cursor of each band piece of this chunk.
+            let mut cursors: Vec<*mut Packed> =
+                band_pieces.iter_mut().map(|p| p.as_mut_ptr()).collect();
             let mut last_t = i64::MIN;
-            let mut lower = 0u32;
+            let mut lower = 0u64;
             let (xs, ys) = (&events.x[range.clone()], &events.y[range.clone()]);
             let (ts, ps) = (&events.t_ns[range.clone()], &events.p[range]);
             for (((&x, &y), &t), &p) in xs.iter().zip(ys).zip(ts).zip(ps) {
                 if t != last_t {
                     let (i, w0, w1) = kernel.weights(t);
                     table.push([w0, w1]);
-                    lower = i as u32;
+                    // The stamp's index goes to the high half of every packed event.
+                    lower = (((table.len() - 1) as u64) << 32) | i as u64;
                     last_t = t;
                 }
-                let y = usize::from(y);
-                let band = row_band[y] as usize;
-                let polarity = if p == 0 { off_offset as u32 } else { 0 };
-                let local = row_offset[y] + u32::from(x) * c as u32 + polarity + lower;
-                let id = (table.len() - 1) as u64;
-                band_pieces[band][cursor[band]] = (id << 32) | u64::from(local);
-                cursor[band] += 1;
+                let place = row_place[usize::from(y)];
+                let band = (place >> 32) as usize;
+                let polarity = if p == 0 { off_offset } else { 0 };
+                let local = (place & 0xFFFF_FFFF) + u64::from(x) * c as u64 + polarity;
+                // SAFETY: pass 0 counted this chunk's events of every band and the band's
+                // piece has exactly that length; each event advances its band's cursor once,
+                // so every write lands inside the piece (y < height was validated, so `band`
+                // indexes `cursors`).
+                unsafe {
+                    let cursor = cursors.get_unchecked_mut(band);
+                    cursor.write(lower + local);
+                    *cursor = cursor.add(1);
+                }
             }
         });
     // Pass 2: each band adds its events' votes into its rows, chunk after chunk.
@@ -348,8 +357,10 @@ pub fn e3ct_into(
 #[inline]
 fn accumulate(rows: &mut [f32], list: &[Packed], table: &[[f32; 2]]) {
     for &packed in list {
-        let [w0, w1] = table[(packed >> 32) as usize];
+        let id = (packed >> 32) as usize;
         let at = (packed & 0xFFFF_FFFF) as usize;
+        assert!(id < table.len() && at + 1 < rows.len());
+        let [w0, w1] = table[id];
         rows[at] += w0;
         rows[at + 1] += w1;
     }
@@ -414,31 +425,54 @@ pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> R
         .iter()
         .flat_map(|t| t.chunks(SCALE_PIECE_PIXELS * channels))
         .collect();
-    // Pass 1: histogram of the magnitudes' top bits per channel, and any non-finite value.
-    let (hist, non_finite) = pieces
+    // Pass 1, per piece and channel: the bit patterns of the non-zero magnitudes, compacted
+    // without a branch per value (most values are 0, in no predictable pattern), their
+    // histogram, and whether any value is not finite.
+    struct Found {
+        hist: Vec<u64>,
+        lists: Vec<Vec<u32>>,
+        non_finite: bool,
+        scratch: Vec<u32>,
+    }
+    let empty = || Found {
+        hist: vec![0; channels * SCALE_BINS],
+        lists: Vec::new(),
+        non_finite: false,
+        scratch: Vec::new(),
+    };
+    let found = pieces
         .par_iter()
-        .fold(
-            || (vec![0u64; channels * SCALE_BINS], false),
-            |(mut hist, mut non_finite), piece| {
-                for pixel in piece.chunks_exact(channels) {
-                    for (ch, &v) in pixel.iter().enumerate() {
-                        let bits = v.to_bits() & 0x7FFF_FFFF;
-                        non_finite |= bits >= 0x7F80_0000;
-                        if bits != 0 {
-                            hist[ch * SCALE_BINS + (bits >> SCALE_BIN_SHIFT) as usize] += 1;
-                        }
-                    }
+        .fold(empty, |mut found, piece| {
+            let pixels = piece.len() / channels;
+            found.scratch.resize(pixels, 0);
+            for ch in 0..channels {
+                let mut kept = 0;
+                let mut bad = false;
+                for (k, &v) in piece[ch..].iter().step_by(channels).enumerate() {
+                    let bits = v.to_bits() & 0x7FFF_FFFF;
+                    bad |= bits >= 0x7F80_0000;
+                    // Written unconditionally, kept by advancing past it (kept ≤ k < pixels).
+                    found.scratch[kept.min(k)] = bits;
+                    kept += usize::from(bits != 0);
                 }
-                (hist, non_finite)
-            },
-        )
-        .reduce(
-            || (vec![0u64; channels * SCALE_BINS], false),
-            |(mut a, fa), (b, fb)| {
-                a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
-                (a, fa || fb)
-            },
-        );
+                found.non_finite |= bad;
+                let list = found.scratch[..kept].to_vec();
+                let hist = &mut found.hist[ch * SCALE_BINS..(ch + 1) * SCALE_BINS];
+                for &bits in &list {
+                    hist[(bits >> SCALE_BIN_SHIFT) as usize] += 1;
+                }
+                // One list per channel in channel order, so list i is of channel i % C.
+                found.lists.push(list);
+            }
+            found
+        })
+        .reduce(empty, |mut a, b| {
+            a.hist.iter_mut().zip(&b.hist).for_each(|(x, y)| *x += y);
+            a.lists.extend(b.lists);
+            a.non_finite |= b.non_finite;
+            a
+        });
+    let (hist, non_finite) = (&found.hist, found.non_finite);
     if non_finite {
         for (k, t) in tensors.iter().enumerate() {
             if let Some(i) = t.iter().position(|v| !v.is_finite()) {
@@ -470,31 +504,20 @@ pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> R
         })
         .collect();
     // Pass 2: the magnitudes (as bits) of the wanted bin of every channel.
-    let gathered: Vec<Vec<u32>> = pieces
-        .par_iter()
-        .fold(
-            || vec![Vec::new(); channels],
-            |mut found: Vec<Vec<u32>>, piece| {
-                for pixel in piece.chunks_exact(channels) {
-                    for ((&v, want), list) in pixel.iter().zip(&wanted).zip(found.iter_mut()) {
-                        let bits = v.to_bits() & 0x7FFF_FFFF;
-                        if let Some((bin, _)) = want {
-                            if bits >> SCALE_BIN_SHIFT == *bin && bits != 0 {
-                                list.push(bits);
-                            }
-                        }
-                    }
-                }
-                found
-            },
-        )
-        .reduce(
-            || vec![Vec::new(); channels],
-            |mut a, b| {
-                a.iter_mut().zip(b).for_each(|(x, y)| x.extend(y));
-                a
-            },
-        );
+    let gathered: Vec<Vec<u32>> = (0..channels)
+        .into_par_iter()
+        .map(|ch| match wanted[ch] {
+            Some((bin, _)) => found
+                .lists
+                .iter()
+                .skip(ch)
+                .step_by(channels)
+                .flat_map(|list| list.iter().copied())
+                .filter(|bits| bits >> SCALE_BIN_SHIFT == bin)
+                .collect(),
+            None => Vec::new(),
+        })
+        .collect();
     Ok(wanted
         .iter()
         .zip(gathered)
