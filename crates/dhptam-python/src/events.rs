@@ -9,8 +9,8 @@ use std::sync::Mutex;
 use dhptam_core::events::{self, E3ctParams, E3ctWorkspace, EventSlice, PolarityMode};
 use numpy::ndarray::{Array3, ArrayD, IxDyn};
 use numpy::{
-    Element, IntoPyArray, PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray1,
-    PyReadonlyArrayDyn, PyUntypedArrayMethods,
+    Element, IntoPyArray, PyArray3, PyArrayDyn, PyReadonlyArray1, PyReadonlyArrayDyn,
+    PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 

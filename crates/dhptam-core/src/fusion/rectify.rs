@@ -95,7 +95,7 @@ impl EventRectifier {
             .table
             .get(usize::from(v) * self.width as usize + usize::from(u))?;
         (entry != OUTSIDE && u32::from(u) < self.width)
-            .then(|| ((entry & 0xFFFF) as u16, (entry >> 16) as u16))
+            .then_some(((entry & 0xFFFF) as u16, (entry >> 16) as u16))
     }
 
     /// Rectifies a window; raw coordinates outside the raw image are an error (see
