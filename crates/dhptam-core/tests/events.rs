@@ -2,7 +2,7 @@
 //! bit-identical results across thread counts.
 
 use dhptam_core::events::{
-    apply_scales, channel_scales, count_image, e3ct, time_surface, voxel_grid, E3ctParams,
+    apply_scales, channel_scales, count_image, e3ct, scaled, time_surface, voxel_grid, E3ctParams,
     EventSlice, PolarityMode,
 };
 use dhptam_core::Error;
@@ -288,4 +288,113 @@ fn reused_workspace_and_output_give_the_same_tensors() {
         &mut out[1..]
     )
     .is_err());
+}
+
+/// The E3CT written as plainly as possible: each event's weights from the formula (f64, cast
+/// to f32 at the end as the library does), added straight into the image in input order.
+fn direct_e3ct(ev: &Events, w: usize, h: usize, span_ns: i64, params: &E3ctParams) -> Vec<f32> {
+    let b = params.channels;
+    let c = params.output_channels();
+    let mut out = vec![0f32; w * h * c];
+    for k in 0..ev.x.len() {
+        let age_ms = (span_ns - ev.t[k]) as f64 * 1e-6;
+        let z = (age_ms - 0.5 * params.eta_ms) * (6.0 / params.eta_ms);
+        let v1 = (-params.alpha * z * z).exp();
+        let s = ev.t[k] as f64 / span_ns as f64 * (b - 1) as f64;
+        let i = (s as usize).min(b - 2);
+        let f = s - i as f64;
+        let group = if params.polarity == PolarityMode::Split && ev.p[k] == 0 {
+            b
+        } else {
+            0
+        };
+        let at = (usize::from(ev.y[k]) * w + usize::from(ev.x[k])) * c + group + i;
+        out[at] += (v1 * (1.0 - f)) as f32;
+        out[at + 1] += (v1 * f) as f32;
+    }
+    out
+}
+
+#[test]
+fn banded_accumulation_is_the_direct_accumulation_bit_for_bit() {
+    // 1280×720×3 spans many cache bands; 6 channels and split polarity shift the offsets.
+    // The same bits mean the same additions in the same order per pixel, on any thread count.
+    let (w, h, span) = (1280u16, 720u16, 50 * MS);
+    let mut ev = Events::random(400_000, w, h, span, 11);
+    for (k, x) in ev.x.iter_mut().enumerate().step_by(2) {
+        // Half the events on a few hot pixels: long per-pixel sums, where order matters.
+        *x = (k % 7) as u16;
+    }
+    for (channels, polarity) in [(3, PolarityMode::Both), (6, PolarityMode::Split)] {
+        let params = E3ctParams {
+            channels,
+            polarity,
+            ..E3ctParams::default()
+        };
+        let want = direct_e3ct(&ev, w.into(), h.into(), span, &params);
+        for threads in [1, 2, 5] {
+            let got = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap()
+                .install(|| e3ct(&ev.slice(), w.into(), h.into(), 0, span, &params).unwrap());
+            let differ = got
+                .iter()
+                .zip(&want)
+                .filter(|(a, b)| a.to_bits() != b.to_bits())
+                .count();
+            assert_eq!(differ, 0, "{channels} channels, {threads} threads");
+        }
+    }
+}
+
+#[test]
+fn scales_equal_a_sorted_nearest_rank_on_random_tensors() {
+    // Values over many octaves, negative ones (magnitudes count), zeros, and tiny subnormal
+    // values that share the histogram's first bin with nothing else.
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut tensor = |n: usize| -> Vec<f32> {
+        (0..n)
+            .map(|_| match rng.random_range(0..10) {
+                0..=4 => 0.0,
+                5 => -rng.random_range(0.0..3.0f32),
+                6 => f32::from_bits(rng.random_range(1..1000)),
+                _ => rng.random_range(0.0f32..1.0).powi(3) * 50.0,
+            })
+            .collect()
+    };
+    let (a, b) = (tensor(3 * 70_001), tensor(3 * 50_000));
+    for percentile in [0.001, 1.0, 50.0, 99.0, 99.9, 100.0] {
+        let got = channel_scales(&[&a, &b], 3, percentile).unwrap();
+        for (ch, &scale) in got.iter().enumerate() {
+            let mut values: Vec<f32> = a
+                .iter()
+                .chain(&b)
+                .skip(ch)
+                .step_by(3)
+                .filter(|v| **v != 0.0)
+                .map(|v| v.abs())
+                .collect();
+            values.sort_by(f32::total_cmp);
+            let rank =
+                ((percentile / 100.0 * values.len() as f64).ceil() as usize).clamp(1, values.len());
+            assert_eq!(
+                scale,
+                values[rank - 1],
+                "channel {ch}, percentile {percentile}"
+            );
+        }
+    }
+    let mut bad = a.clone();
+    bad[3 * 10 + 2] = f32::NAN;
+    let err = channel_scales(&[&b, &bad], 3, 99.0).unwrap_err();
+    assert!(err.to_string().contains("tensors[1][32]"), "{err}");
+    // `scaled` is `apply_scales` into a new buffer.
+    let scales = channel_scales(&[&a], 3, 90.0).unwrap();
+    let copy = scaled(&a, &scales).unwrap();
+    let mut in_place = a.clone();
+    apply_scales(&mut in_place, &scales).unwrap();
+    assert_eq!(copy, in_place);
+    assert!(copy.iter().all(|v| (0.0..=1.0).contains(v)));
+    assert!(scaled(&a[..4], &scales).is_err());
 }

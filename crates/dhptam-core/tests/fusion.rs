@@ -4,7 +4,8 @@
 use dhptam_core::config::{FusionConfig, RectificationConfig};
 use dhptam_core::events::EventSlice;
 use dhptam_core::fusion::{
-    choose_beta, fuse, intensity_from_e3ct, Bias, Depth, EventFrameWarp, EventRectifier, FusionMode,
+    choose_beta, fuse, fuse_e3ct, intensity_from_e3ct, Bias, Depth, EventFrameWarp, EventRectifier,
+    FusionMode,
 };
 use dhptam_core::geometry::{Camera, Projective, RectifiedStereo, Se3, Side, So3, StereoRig};
 use nalgebra::{Vector2, Vector3};
@@ -370,4 +371,41 @@ fn fusion_blends_frame_and_event_intensity() {
     assert_eq!(fuse(&c, &d, 0.25).unwrap(), vec![132, 150, 64]);
     assert!(fuse(&c, &d[..2], 0.5).is_err());
     assert!(fuse(&c, &d, 1.5).is_err());
+}
+
+#[test]
+fn beta_statistics_and_one_pass_fusion_equal_their_plain_forms_on_random_images() {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    // More pixels than one parallel piece; values everywhere in 0..=255.
+    let (w, h) = (700usize, 300usize);
+    let frame: Vec<u8> = (0..w * h).map(|_| rng.random_range(0..=255u8)).collect();
+    for (dark_level, bright_level) in [(20.0, 235.0), (10.5, 244.5), (0.0, 255.0), (254.9, 255.0)] {
+        let config = FusionConfig {
+            dark_level,
+            bright_level,
+            ..FusionConfig::default()
+        };
+        let d = choose_beta(&frame, None, &config).unwrap();
+        let clipped = frame
+            .iter()
+            .filter(|&&v| f64::from(v) <= dark_level || f64::from(v) >= bright_level)
+            .count();
+        assert_eq!(d.clipped_fraction, clipped as f64 / frame.len() as f64);
+        let sum: f64 = frame.iter().map(|&v| f64::from(v)).sum();
+        let max = f64::from(*frame.iter().max().unwrap());
+        assert!((d.ratio - sum / frame.len() as f64 / max).abs() < 1e-12);
+    }
+    let e3ct: Vec<f32> = (0..w * h * 3)
+        .map(|_| rng.random_range(-0.2f32..1.3))
+        .collect();
+    for beta in [0.0, 0.37, 1.0] {
+        let plain = fuse(&frame, &intensity_from_e3ct(&e3ct, 3).unwrap(), beta).unwrap();
+        assert_eq!(
+            fuse_e3ct(&frame, &e3ct, 3, beta).unwrap(),
+            plain,
+            "β = {beta}"
+        );
+    }
+    assert!(fuse_e3ct(&frame, &e3ct[..w * h * 2], 3, 0.5).is_err());
+    assert!(fuse_e3ct(&frame, &e3ct, 3, -0.1).is_err());
 }

@@ -4,11 +4,13 @@
 //! and C-contiguous; they are then read in place. `dhptam.events` converts anything else once,
 //! with range checks, before calling these functions.
 
-use dhptam_core::events::{self, E3ctParams, EventSlice, PolarityMode};
-use numpy::ndarray::Array3;
+use std::sync::Mutex;
+
+use dhptam_core::events::{self, E3ctParams, E3ctWorkspace, EventSlice, PolarityMode};
+use numpy::ndarray::{Array3, ArrayD, IxDyn};
 use numpy::{
-    Element, IntoPyArray, PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray1,
-    PyReadonlyArrayDyn, PyUntypedArrayMethods,
+    Element, IntoPyArray, PyArray3, PyArrayDyn, PyReadonlyArray1, PyReadonlyArrayDyn,
+    PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 
@@ -92,9 +94,39 @@ pub fn _e3ct<'py>(
         polarity: parse_polarity(polarity)?,
     };
     image(py, &(x, y, t_ns, p), width, height, |s| {
-        events::e3ct(s, width, height, t_start_ns, t_end_ns, &params)
+        let mut out = vec![0f32; width as usize * height as usize * params.output_channels()];
+        // A pooled workspace: fresh scratch pages for every window cost as much as the pass
+        // that fills them.
+        let mut workspace = WORKSPACES
+            .lock()
+            .ok()
+            .and_then(|mut pool| pool.pop())
+            .unwrap_or_default();
+        let result = events::e3ct_into(
+            s,
+            width,
+            height,
+            t_start_ns,
+            t_end_ns,
+            &params,
+            &mut workspace,
+            &mut out,
+        );
+        if let Ok(mut pool) = WORKSPACES.lock() {
+            if pool.len() < MAX_POOLED_WORKSPACES {
+                pool.push(workspace);
+            }
+        }
+        result.map(|()| out)
     })
 }
+
+/// E3CT scratch memory kept between calls, one per concurrent caller (up to
+/// [`MAX_POOLED_WORKSPACES`]); each holds 8 bytes per event of the largest window it served.
+static WORKSPACES: Mutex<Vec<E3ctWorkspace>> = Mutex::new(Vec::new());
+
+/// Most workspaces [`WORKSPACES`] keeps (two cameras, a prefetching thread and a spare).
+const MAX_POOLED_WORKSPACES: usize = 4;
 
 /// Event count image, (H, W, 1) or (H, W, 2) float32.
 #[pyfunction]
@@ -206,14 +238,11 @@ pub fn _e3ct_apply_scales<'py>(
             format!("shape {:?}", tensor.shape()),
         ));
     }
-    let out = tensor.as_array().to_owned();
-    let out = PyArrayDyn::from_owned_array(py, out);
-    {
-        let mut rw = out.readwrite();
-        let data = rw
-            .as_slice_mut()
-            .map_err(|_| input_error("tensor", "a contiguous copy", "a strided array"))?;
-        py.detach(|| events::apply_scales(data, &scales)).py()?;
-    }
+    let shape = tensor.shape().to_vec();
+    let src = tensor_slice(&tensor, "tensor")?;
+    let out = py.detach(|| events::scaled(src, &scales)).py()?;
+    let out = ArrayD::from_shape_vec(IxDyn(&shape), out)
+        .map_err(|e| input_error("tensor", "a consistent size", e))?
+        .into_pyarray(py);
     Ok(out)
 }

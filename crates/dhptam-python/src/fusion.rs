@@ -71,10 +71,7 @@ pub fn _fuse<'py>(
         .as_slice()
         .map_err(|_| input_error("e3ct", "a C-contiguous float32 array", "a strided view"))?;
     let fused = py
-        .detach(|| {
-            let d = fusion::intensity_from_e3ct(events, c)?;
-            fusion::fuse(pixels, &d, beta)
-        })
+        .detach(|| fusion::fuse_e3ct(pixels, events, c, beta))
         .py()?;
     Array2::from_shape_vec((h, w), fused)
         .map(|a| a.into_pyarray(py))

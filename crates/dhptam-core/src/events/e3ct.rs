@@ -147,20 +147,28 @@ impl Kernel {
     }
 }
 
-/// Bytes of output one band of rows may span, so that a band stays in the L2 cache while its
-/// events are added (the whole image, 11 MB at 1280×720×3, does not).
-const BAND_BYTES: usize = 192 * 1024;
+/// Bytes of output one band of rows may span: a band stays in the core's L2 cache (2 MiB on
+/// the machines measured, with room for the streamed event lists) while its events are added;
+/// the whole image, 11 MB at 1280×720×3, does not.
+const BAND_BYTES: usize = 512 * 1024;
 
-/// One event after the bucket pass: its first output value inside its band (low 32 bits) and
-/// the index of its weights in its chunk's weight table (high 32 bits).
+/// Fewest events per chunk of the first pass: smaller windows do not pay for a second thread.
+const MIN_CHUNK_EVENTS: usize = 1 << 14;
+
+/// One event after the bucket pass: its first output value inside its band, lower channel
+/// and polarity group included (low 32 bits), and the index of its time stamp in its chunk's
+/// table of votes (high 32 bits).
 type Packed = u64;
 
-/// What the bucket pass produces for one chunk of the input: the weights `(i, V1 (1 − f),
-/// V1 f)` of each distinct time stamp, and the chunk's events per band.
+/// Scratch memory of [`e3ct_into`], kept between windows so that a stream of windows does not
+/// fault in fresh pages for every one (page faults cost more than the accumulation itself).
 #[derive(Debug, Default)]
-struct Chunk {
-    weights: Vec<(u32, f32, f32)>,
-    per_band: Vec<Vec<Packed>>,
+pub struct E3ctWorkspace {
+    /// Every event of the window as a [`Packed`], grouped by band, then by chunk, each group
+    /// in input order (a stable counting sort).
+    packed: Vec<Packed>,
+    /// Per chunk: the votes `[V1 (1 − f), V1 f]` of each distinct time stamp, in order.
+    votes: Vec<Vec<[f32; 2]>>,
 }
 
 /// The E3CT of one window: a `height × width × C` image (channel fastest, `C` from
@@ -170,13 +178,14 @@ struct Chunk {
 /// polarities other than 0/1, times outside `[t_start_ns, t_end_ns)` or decreasing times are
 /// [`Error::InvalidInput`] naming the first offending event. An empty window gives zeros.
 ///
-/// On one rayon thread the events are added straight into the image, in input order. On
-/// more, two passes, both parallel. (1) The input is cut into one chunk per thread; each chunk
-/// computes the weights once per distinct time stamp (event cameras stamp in µs, so a busy
-/// window has tens of events per stamp) into its own table and distributes its events, in
-/// order, into per-band lists. (2) Each band of rows (small enough to stay in cache) reads the
-/// lists of chunk 0, 1, … in turn and adds the weights. Every pixel thus receives its events
-/// in input order whatever the thread count, which makes the `f32` sums bit-identical.
+/// Two passes over the events, on any number of rayon threads. (1) The input is cut into
+/// chunks (one per thread); each chunk computes the votes once per distinct time stamp (event
+/// cameras stamp in µs, so a busy window has tens of events per stamp) and distributes its
+/// events by a stable counting sort into bands of rows, each band small enough to stay in the
+/// L2 cache. (2) Each band adds the votes of its events, those of chunk 0 first, then chunk 1,
+/// …, into its rows: the writes hit cache instead of the whole image in memory. Every pixel
+/// thus receives its events in input order whatever the thread count, which makes the `f32`
+/// sums bit-identical.
 pub fn e3ct(
     events: &EventSlice<'_>,
     width: u32,
@@ -198,13 +207,6 @@ pub fn e3ct(
         &mut out,
     )?;
     Ok(out)
-}
-
-/// Scratch memory of [`e3ct_into`], kept between windows so that a stream of windows does not
-/// fault in fresh pages for every one (page faults cost more than the accumulation itself).
-#[derive(Debug, Default)]
-pub struct E3ctWorkspace {
-    chunks: Vec<Chunk>,
 }
 
 /// [`e3ct()`] writing into `out` (`height × width × C` values, overwritten) with reusable
@@ -232,104 +234,159 @@ pub fn e3ct_into(
         ));
     }
     let n = events.len();
-    if u32::try_from(n).is_err() {
+    let row_values = w * c;
+    let rows_per_band = (BAND_BYTES / (4 * row_values).max(1)).clamp(1, h.max(1));
+    if n == 0 || row_values == 0 {
+        out.fill(0.0);
+        return Ok(());
+    }
+    let band_values = rows_per_band * row_values;
+    if u32::try_from(band_values).is_err() || u32::try_from(n).is_err() {
         return Err(Error::invalid(
             "events",
-            "fewer than 2³² events in one window",
+            "fewer than 2³² events in one window and image rows of fewer than 2³² values",
             n,
         ));
     }
     let kernel = Kernel::new(params, t_start_ns, t_end_ns);
     let off_offset = match params.polarity {
         PolarityMode::Both => 0,
-        PolarityMode::Split => params.channels,
+        PolarityMode::Split => params.channels as u64,
     };
-    let threads = rayon::current_num_threads();
-    if threads == 1 {
-        // One pass straight into the image: on one core the bucket sort costs more than the
-        // cache misses it saves. Same order of additions per pixel, so the same bits.
-        out.fill(0.0);
-        let mut last_t = i64::MIN;
-        let mut weights = (0usize, 0f32, 0f32);
-        for k in 0..n {
-            let t = events.t_ns[k];
-            if t != last_t {
-                weights = kernel.weights(t);
-                last_t = t;
-            }
-            let polarity = if events.p[k] == 0 { off_offset } else { 0 };
-            let at = (usize::from(events.y[k]) * w + usize::from(events.x[k])) * c
-                + polarity
-                + weights.0;
-            out[at] += weights.1;
-            out[at + 1] += weights.2;
-        }
-        return Ok(());
-    }
-    let row_values = w * c;
-    let rows_per_band = (BAND_BYTES / (4 * row_values)).clamp(1, h);
     let bands = h.div_ceil(rows_per_band);
-    // Band of each row and the offset of the row's first value inside its band.
-    let row_place: Vec<(u32, u32)> = (0..h)
-        .map(|r| {
-            (
-                (r / rows_per_band) as u32,
-                ((r % rows_per_band) * row_values) as u32,
-            )
+    // Band of each row (high 32 bits) and the offset of the row's first value inside its
+    // band (low 32 bits).
+    let row_place: Vec<u64> = (0..h)
+        .map(|r| (((r / rows_per_band) as u64) << 32) | ((r % rows_per_band) * row_values) as u64)
+        .collect();
+    let threads = rayon::current_num_threads();
+    let chunk_len = n.div_ceil(threads).max(MIN_CHUNK_EVENTS);
+    let n_chunks = n.div_ceil(chunk_len);
+    let chunk_range = |k: usize| k * chunk_len..((k + 1) * chunk_len).min(n);
+
+    // Pass 0: events per (chunk, band).
+    let counts: Vec<Vec<usize>> = (0..n_chunks)
+        .into_par_iter()
+        .map(|k| {
+            let mut count = vec![0usize; bands];
+            for &y in &events.y[chunk_range(k)] {
+                count[(row_place[usize::from(y)] >> 32) as usize] += 1;
+            }
+            count
         })
         .collect();
-    let chunk_len = n.div_ceil(threads).max(1 << 12);
-    let n_chunks = n.div_ceil(chunk_len);
-    let chunks = &mut workspace.chunks;
-    chunks.resize_with(n_chunks.max(chunks.len()), Chunk::default);
-    chunks[..n_chunks]
+    // Slots of the packed list: band-major, chunk-minor, so that each band's events are
+    // contiguous and in input order.
+    let E3ctWorkspace { packed, votes } = workspace;
+    if packed.capacity() < n {
+        // Fresh zeroed pages (no fill pass); pass 1 writes every slot.
+        *packed = vec![0; n];
+    } else {
+        packed.resize(n, 0);
+    }
+    votes.resize_with(n_chunks.max(votes.len()), Vec::new);
+    let mut lengths = Vec::with_capacity(bands * n_chunks);
+    for b in 0..bands {
+        lengths.extend(counts.iter().map(|count| count[b]));
+    }
+    let mut pieces = split_at_lengths(packed.as_mut_slice(), &lengths);
+    // Regroup the pieces chunk-major for pass 1 (each chunk writes its own pieces), keeping
+    // the band-major order of the slices for pass 2.
+    let mut per_chunk: Vec<Vec<&mut [Packed]>> = (0..n_chunks).map(|_| Vec::new()).collect();
+    for (index, piece) in pieces.drain(..).enumerate() {
+        per_chunk[index % n_chunks].push(piece);
+    }
+    // Pass 1: votes per distinct stamp, and the counting sort of the events into bands.
+    per_chunk
         .par_iter_mut()
+        .zip(votes[..n_chunks].par_iter_mut())
         .enumerate()
-        .for_each(|(index, chunk)| {
-            let range = index * chunk_len..((index + 1) * chunk_len).min(n);
-            chunk.weights.clear();
-            chunk.per_band.resize_with(bands, Vec::new);
-            chunk.per_band.truncate(bands);
-            // Exact list sizes first: over-allocating would fault in pages never used.
-            let mut counts = vec![0usize; bands];
-            for &y in &events.y[range.clone()] {
-                counts[row_place[usize::from(y)].0 as usize] += 1;
-            }
-            for (list, &k) in chunk.per_band.iter_mut().zip(&counts) {
-                list.clear();
-                list.reserve_exact(k);
-            }
+        .for_each(|(k, (band_pieces, table))| {
+            let range = chunk_range(k);
+            table.clear();
+            // Write cursor of each band piece of this chunk.
+            let mut cursors: Vec<*mut Packed> =
+                band_pieces.iter_mut().map(|p| p.as_mut_ptr()).collect();
             let mut last_t = i64::MIN;
-            for k in range {
-                let t = events.t_ns[k];
+            let mut lower = 0u64;
+            let (xs, ys) = (&events.x[range.clone()], &events.y[range.clone()]);
+            let (ts, ps) = (&events.t_ns[range.clone()], &events.p[range]);
+            for (((&x, &y), &t), &p) in xs.iter().zip(ys).zip(ts).zip(ps) {
                 if t != last_t {
                     let (i, w0, w1) = kernel.weights(t);
-                    chunk.weights.push((i as u32, w0, w1));
+                    table.push([w0, w1]);
+                    // The stamp's index goes to the high half of every packed event.
+                    lower = (((table.len() - 1) as u64) << 32) | i as u64;
                     last_t = t;
                 }
-                let (band, row_offset) = row_place[usize::from(events.y[k])];
-                let polarity = if events.p[k] == 0 { off_offset } else { 0 };
-                let local = row_offset as usize + usize::from(events.x[k]) * c + polarity;
-                let id = (chunk.weights.len() - 1) as u64;
-                chunk.per_band[band as usize].push((id << 32) | local as u64);
+                let place = row_place[usize::from(y)];
+                let band = (place >> 32) as usize;
+                let polarity = if p == 0 { off_offset } else { 0 };
+                let local = (place & 0xFFFF_FFFF) + u64::from(x) * c as u64 + polarity;
+                // SAFETY: pass 0 counted this chunk's events of every band and the band's
+                // piece has exactly that length; each event advances its band's cursor once,
+                // so every write lands inside the piece (y < height was validated, so `band`
+                // indexes `cursors`).
+                unsafe {
+                    let cursor = cursors.get_unchecked_mut(band);
+                    cursor.write(lower + local);
+                    *cursor = cursor.add(1);
+                }
             }
         });
-    let chunks = &workspace.chunks[..n_chunks];
-    out.par_chunks_mut(rows_per_band * row_values)
-        .enumerate()
-        .for_each(|(band, rows)| {
+    // Pass 2: each band adds its events' votes into its rows, chunk after chunk.
+    let mut band_lists: Vec<&[Packed]> = Vec::with_capacity(bands * n_chunks);
+    let mut start = 0;
+    for &len in &lengths {
+        band_lists.push(&packed[start..start + len]);
+        start += len;
+    }
+    let votes = &votes[..n_chunks];
+    out.par_chunks_mut(band_values)
+        .zip(band_lists.par_chunks(n_chunks))
+        .for_each(|(rows, lists)| {
             rows.fill(0.0);
-            for chunk in chunks {
-                for &packed in &chunk.per_band[band] {
-                    let (i, w0, w1) = chunk.weights[(packed >> 32) as usize];
-                    let at = (packed & 0xFFFF_FFFF) as usize + i as usize;
-                    rows[at] += w0;
-                    rows[at + 1] += w1;
-                }
+            for (list, table) in lists.iter().zip(votes) {
+                accumulate(rows, list, table);
             }
         });
     Ok(())
 }
+
+/// Adds the votes of `list` (events of one band from one chunk) into the band's `rows`.
+#[inline]
+fn accumulate(rows: &mut [f32], list: &[Packed], table: &[[f32; 2]]) {
+    for &packed in list {
+        let id = (packed >> 32) as usize;
+        let at = (packed & 0xFFFF_FFFF) as usize;
+        assert!(id < table.len() && at + 1 < rows.len());
+        let [w0, w1] = table[id];
+        rows[at] += w0;
+        rows[at + 1] += w1;
+    }
+}
+
+/// Splits `data` into consecutive mutable pieces of the given lengths (their sum must not
+/// exceed `data.len()`).
+fn split_at_lengths<'a, T>(mut data: &'a mut [T], lengths: &[usize]) -> Vec<&'a mut [T]> {
+    let mut pieces = Vec::with_capacity(lengths.len());
+    for &len in lengths {
+        let (head, tail) = std::mem::take(&mut data).split_at_mut(len);
+        pieces.push(head);
+        data = tail;
+    }
+    pieces
+}
+
+/// Bits of an `f32` below the first-pass histogram bin of [`channel_scales`]: the bin of a
+/// value is its magnitude's top 12 bits (8 of exponent, 4 of mantissa), so one bin spans a
+/// sixteenth of an octave, and the integer order of the bit patterns of non-negative floats
+/// is the order of their values.
+const SCALE_BIN_SHIFT: u32 = 19;
+/// Bins per channel of that histogram.
+const SCALE_BINS: usize = 1 << (31 - SCALE_BIN_SHIFT);
+/// Values per parallel piece of [`channel_scales`] and [`apply_scales`], in whole pixels.
+const SCALE_PIECE_PIXELS: usize = 1 << 15;
 
 /// Normalisation scale of each of `channels` channels: the `percentile`-th percentile
 /// (nearest rank) of the channel's non-zero values, pooled over all `tensors`.
@@ -338,7 +395,12 @@ pub fn e3ct_into(
 /// with [`apply_scales`]: the same scale for the same channel keeps their colours equal.
 /// Only non-zero values count because most pixels see no event in a short window; a
 /// percentile over all pixels would be 0. A channel without any non-zero value gets scale 1
-/// (it stays 0).
+/// (it stays 0). Magnitudes count (the E3CT has no negative value).
+///
+/// An exact selection without sorting: one parallel pass builds a histogram per channel of
+/// the magnitudes' top bits (whose integer order is their order as numbers), which locates
+/// the bin holding the wanted rank; a second pass gathers the few values of that bin, among
+/// which the rank is selected. A non-finite value is an error naming it.
 pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> Result<Vec<f32>> {
     if channels == 0 {
         return Err(Error::invalid("channels", "at least one channel", 0));
@@ -358,38 +420,154 @@ pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> R
                 format!("{} values", t.len()),
             ));
         }
-        if let Some(i) = t.iter().position(|v| !v.is_finite()) {
-            return Err(Error::invalid(
-                format!("tensors[{k}][{i}]"),
-                "a finite value",
-                t[i],
-            ));
+    }
+    let pieces: Vec<&[f32]> = tensors
+        .iter()
+        .flat_map(|t| t.chunks(SCALE_PIECE_PIXELS * channels))
+        .collect();
+    // Pass 1, per piece and channel: the bit patterns of the non-zero magnitudes, compacted
+    // without a branch per value (most values are 0, in no predictable pattern), their
+    // histogram, and whether any value is not finite.
+    struct Found {
+        hist: Vec<u64>,
+        lists: Vec<Vec<u32>>,
+        non_finite: bool,
+        scratch: Vec<u32>,
+    }
+    let empty = || Found {
+        hist: vec![0; channels * SCALE_BINS],
+        lists: Vec::new(),
+        non_finite: false,
+        scratch: Vec::new(),
+    };
+    let found = pieces
+        .par_iter()
+        .fold(empty, |mut found, piece| {
+            let pixels = piece.len() / channels;
+            found.scratch.resize(pixels, 0);
+            for ch in 0..channels {
+                let mut kept = 0;
+                let mut bad = false;
+                for (k, &v) in piece[ch..].iter().step_by(channels).enumerate() {
+                    let bits = v.to_bits() & 0x7FFF_FFFF;
+                    bad |= bits >= 0x7F80_0000;
+                    // Written unconditionally, kept by advancing past it (kept ≤ k < pixels).
+                    found.scratch[kept.min(k)] = bits;
+                    kept += usize::from(bits != 0);
+                }
+                found.non_finite |= bad;
+                let list = found.scratch[..kept].to_vec();
+                let hist = &mut found.hist[ch * SCALE_BINS..(ch + 1) * SCALE_BINS];
+                for &bits in &list {
+                    hist[(bits >> SCALE_BIN_SHIFT) as usize] += 1;
+                }
+                // One list per channel in channel order, so list i is of channel i % C.
+                found.lists.push(list);
+            }
+            found
+        })
+        .reduce(empty, |mut a, b| {
+            a.hist.iter_mut().zip(&b.hist).for_each(|(x, y)| *x += y);
+            a.lists.extend(b.lists);
+            a.non_finite |= b.non_finite;
+            a
+        });
+    let (hist, non_finite) = (&found.hist, found.non_finite);
+    if non_finite {
+        for (k, t) in tensors.iter().enumerate() {
+            if let Some(i) = t.iter().position(|v| !v.is_finite()) {
+                return Err(Error::invalid(
+                    format!("tensors[{k}][{i}]"),
+                    "a finite value",
+                    t[i],
+                ));
+            }
         }
     }
-    Ok((0..channels)
-        .into_par_iter()
-        .map(|ch| {
-            let mut values: Vec<f32> = tensors
-                .iter()
-                .flat_map(|t| t.iter().skip(ch).step_by(channels))
-                .copied()
-                .filter(|&v| v != 0.0)
-                .map(f32::abs)
-                .collect();
-            if values.is_empty() {
-                return 1.0;
+    // Per channel: the bin holding the nearest rank and the rank inside that bin.
+    let wanted: Vec<Option<(u32, usize)>> = hist
+        .chunks_exact(SCALE_BINS)
+        .map(|bins| {
+            let total: u64 = bins.iter().sum();
+            if total == 0 {
+                return None;
             }
-            let rank = ((percentile / 100.0 * values.len() as f64).ceil() as usize)
-                .clamp(1, values.len())
-                - 1;
-            let (_, &mut scale, _) = values.select_nth_unstable_by(rank, f32::total_cmp);
-            scale
+            let rank = ((percentile / 100.0 * total as f64).ceil() as u64).clamp(1, total) - 1;
+            let mut below = 0u64;
+            for (bin, &count) in bins.iter().enumerate() {
+                if below + count > rank {
+                    return Some((bin as u32, (rank - below) as usize));
+                }
+                below += count;
+            }
+            None
+        })
+        .collect();
+    // Pass 2: the magnitudes (as bits) of the wanted bin of every channel.
+    let gathered: Vec<Vec<u32>> = (0..channels)
+        .into_par_iter()
+        .map(|ch| match wanted[ch] {
+            Some((bin, _)) => found
+                .lists
+                .iter()
+                .skip(ch)
+                .step_by(channels)
+                .flat_map(|list| list.iter().copied())
+                .filter(|bits| bits >> SCALE_BIN_SHIFT == bin)
+                .collect(),
+            None => Vec::new(),
+        })
+        .collect();
+    Ok(wanted
+        .iter()
+        .zip(gathered)
+        .map(|(want, mut bits)| match want {
+            // The rank inside the bin is below the bin's count, which `bits` holds exactly.
+            Some((_, rank)) if *rank < bits.len() => {
+                let (_, &mut scale, _) = bits.select_nth_unstable(*rank);
+                f32::from_bits(scale)
+            }
+            _ => 1.0,
         })
         .collect())
 }
 
 /// Divides each channel by its scale and clips to `[0, 1]`, in place.
 pub fn apply_scales(tensor: &mut [f32], scales: &[f32]) -> Result<()> {
+    let inv = inverse_scales(tensor.len(), scales)?;
+    let c = scales.len();
+    tensor
+        .par_chunks_mut(c * SCALE_PIECE_PIXELS)
+        .for_each(|block| {
+            for pixel in block.chunks_exact_mut(c) {
+                for (v, k) in pixel.iter_mut().zip(&inv) {
+                    *v = (*v * k).clamp(0.0, 1.0);
+                }
+            }
+        });
+    Ok(())
+}
+
+/// [`apply_scales`] into a new buffer, leaving `tensor` as it is: one pass instead of a copy
+/// and a pass.
+pub fn scaled(tensor: &[f32], scales: &[f32]) -> Result<Vec<f32>> {
+    let inv = inverse_scales(tensor.len(), scales)?;
+    let c = scales.len();
+    let mut out = vec![0f32; tensor.len()];
+    out.par_chunks_mut(c * SCALE_PIECE_PIXELS)
+        .zip(tensor.par_chunks(c * SCALE_PIECE_PIXELS))
+        .for_each(|(dst, src)| {
+            for (d, s) in dst.chunks_exact_mut(c).zip(src.chunks_exact(c)) {
+                for ((d, s), k) in d.iter_mut().zip(s).zip(&inv) {
+                    *d = (*s * k).clamp(0.0, 1.0);
+                }
+            }
+        });
+    Ok(out)
+}
+
+/// `1 / scale` per channel, after checking the scales and the tensor's length.
+fn inverse_scales(len: usize, scales: &[f32]) -> Result<Vec<f32>> {
     let c = scales.len();
     if let Some(i) = scales.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
         return Err(Error::invalid(
@@ -398,20 +576,12 @@ pub fn apply_scales(tensor: &mut [f32], scales: &[f32]) -> Result<()> {
             scales[i],
         ));
     }
-    if c == 0 || tensor.len() % c != 0 {
+    if c == 0 || len % c != 0 {
         return Err(Error::invalid(
             "tensor",
             format!("a multiple of {c} values (one scale per channel)"),
-            format!("{} values", tensor.len()),
+            format!("{len} values"),
         ));
     }
-    let inv: Vec<f32> = scales.iter().map(|s| 1.0 / s).collect();
-    tensor.par_chunks_mut(c * 4096).for_each(|block| {
-        for pixel in block.chunks_exact_mut(c) {
-            for (v, k) in pixel.iter_mut().zip(&inv) {
-                *v = (*v * k).clamp(0.0, 1.0);
-            }
-        }
-    });
-    Ok(())
+    Ok(scales.iter().map(|s| 1.0 / s).collect())
 }

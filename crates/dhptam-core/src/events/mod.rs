@@ -15,7 +15,7 @@ pub mod representations;
 pub mod window;
 
 pub use e3ct::{
-    apply_scales, channel_scales, e3ct, e3ct_into, E3ctParams, E3ctWorkspace, PolarityMode,
+    apply_scales, channel_scales, e3ct, e3ct_into, scaled, E3ctParams, E3ctWorkspace, PolarityMode,
 };
 pub use representations::{count_image, time_surface, voxel_grid};
 pub use window::EventSlice;

@@ -79,22 +79,32 @@ impl<'a> EventSlice<'a> {
             .find_map_first(|chunk| {
                 let start = chunk * CHECK_CHUNK;
                 let end = (start + CHECK_CHUNK).min(n);
-                let mut ok = true;
-                let mut previous = if start == 0 {
+                // One reduction per array (each vectorises); a chunk with a bad event fails
+                // at least one of them.
+                let (xs, ys) = (&self.x[start..end], &self.y[start..end]);
+                let (ts, ps) = (&self.t_ns[start..end], &self.p[start..end]);
+                let max_x = xs.iter().fold(0u16, |m, &v| m.max(v));
+                let max_y = ys.iter().fold(0u16, |m, &v| m.max(v));
+                // p ∈ {0, 1} ⇔ no bit other than the lowest is set.
+                let p_bits = ps.iter().fold(0u8, |m, &v| m | (v as u8 & !1));
+                let descents = ts
+                    .iter()
+                    .zip(&ts[1..])
+                    .fold(0u32, |m, (a, b)| m | u32::from(b < a));
+                let previous = if start == 0 {
                     i64::MIN
                 } else {
                     self.t_ns[start - 1]
                 };
-                for k in start..end {
-                    let t = self.t_ns[k];
-                    ok &= u32::from(self.x[k]) < width
-                        && u32::from(self.y[k]) < height
-                        && (0..=1).contains(&self.p[k])
-                        && t >= t_start_ns
-                        && t < t_end_ns
-                        && t >= previous;
-                    previous = t;
-                }
+                // Sorted (checked above and against the previous chunk), so the first and
+                // the last time bound all of them.
+                let ok = u32::from(max_x) < width
+                    && u32::from(max_y) < height
+                    && p_bits == 0
+                    && descents == 0
+                    && ts[0] >= previous
+                    && ts[0] >= t_start_ns
+                    && ts[ts.len() - 1] < t_end_ns;
                 if ok {
                     return None;
                 }

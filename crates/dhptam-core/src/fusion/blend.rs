@@ -13,10 +13,14 @@
 //! reports fewer than `min_features` features detected on it. Modes `frames` and `events` fix
 //! β to 0 and 1.
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::config::FusionConfig;
 use crate::error::{Error, Result};
+
+/// Pixels per parallel piece of [`choose_beta`] and [`fuse_e3ct`].
+const BETA_PIECE: usize = 1 << 16;
 
 /// Which images the front-end feeds to the features.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -82,13 +86,34 @@ pub fn choose_beta(
             "an empty image",
         ));
     }
-    let (mut sum, mut max, mut clipped) = (0u64, 0u8, 0usize);
-    for &v in frame {
-        sum += u64::from(v);
-        max = max.max(v);
-        clipped +=
-            usize::from(f64::from(v) <= config.dark_level || f64::from(v) >= config.bright_level);
-    }
+    // The clipping tests as integer bounds (pixels are integers): v < dark_end is dark,
+    // v ≥ bright_start is bright. Comparisons with the f64 levels are monotone in v.
+    let dark_end = (0..=255u16)
+        .take_while(|&v| f64::from(v) <= config.dark_level)
+        .count() as u16;
+    let bright_start = (0..=255u16)
+        .find(|&v| f64::from(v) >= config.bright_level)
+        .unwrap_or(256);
+    // One pass, parallel over pieces; each piece's loop has no branch and vectorises.
+    let (sum, max, clipped) = frame
+        .par_chunks(BETA_PIECE)
+        .map(|piece| {
+            let (mut sum, mut max, mut clipped) = (0u64, 0u8, 0u64);
+            for block in piece.chunks(1 << 12) {
+                // Per block in u32: 4096 × 255 fits, and u32 lanes vectorise better.
+                let (mut s, mut c) = (0u32, 0u32);
+                for &v in block {
+                    s += u32::from(v);
+                    max = max.max(v);
+                    let v = u16::from(v);
+                    c += u32::from((v < dark_end) | (v >= bright_start));
+                }
+                sum += u64::from(s);
+                clipped += u64::from(c);
+            }
+            (sum, max, clipped)
+        })
+        .reduce(|| (0, 0, 0), |a, b| (a.0 + b.0, a.1.max(b.1), a.2 + b.2));
     let n = frame.len() as f64;
     let ratio = if max == 0 {
         0.0
@@ -155,4 +180,35 @@ pub fn fuse(frame: &[u8], events: &[f32], beta: f64) -> Result<Vec<u8>> {
         .zip(events)
         .map(|(&c, &d)| (a * f32::from(c) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8)
         .collect())
+}
+
+/// [`fuse`] of the frame with [`intensity_from_e3ct`] of `e3ct` (`H × W × channels`, the
+/// warped, normalised E3CT), in one parallel pass without the intermediate intensity image;
+/// the same values.
+pub fn fuse_e3ct(frame: &[u8], e3ct: &[f32], channels: usize, beta: f64) -> Result<Vec<u8>> {
+    if channels == 0 || e3ct.len() != frame.len() * channels {
+        return Err(Error::invalid(
+            "e3ct",
+            format!(
+                "{} × {channels} values, {channels} per frame pixel",
+                frame.len()
+            ),
+            format!("{} values", e3ct.len()),
+        ));
+    }
+    if !(0.0..=1.0).contains(&beta) {
+        return Err(Error::invalid("beta", "a weight in [0, 1]", beta));
+    }
+    let (a, b) = ((1.0 - beta) as f32, (beta * 255.0) as f32);
+    let mut out = vec![0u8; frame.len()];
+    out.par_chunks_mut(BETA_PIECE)
+        .zip(frame.par_chunks(BETA_PIECE))
+        .zip(e3ct.par_chunks(BETA_PIECE * channels))
+        .for_each(|((out, frame), e3ct)| {
+            for ((o, &c), px) in out.iter_mut().zip(frame).zip(e3ct.chunks_exact(channels)) {
+                let d = px.iter().copied().fold(0.0f32, f32::max).clamp(0.0, 1.0);
+                *o = (a * f32::from(c) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8;
+            }
+        });
+    Ok(out)
 }

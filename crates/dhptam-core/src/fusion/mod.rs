@@ -10,6 +10,8 @@ pub mod blend;
 pub mod rectify;
 pub mod warp;
 
-pub use blend::{choose_beta, fuse, intensity_from_e3ct, BetaDecision, Bias, FusionMode};
+pub use blend::{
+    choose_beta, fuse, fuse_e3ct, intensity_from_e3ct, BetaDecision, Bias, FusionMode,
+};
 pub use rectify::{EventRectifier, RectifiedEvents};
 pub use warp::{Depth, EventFrameWarp};

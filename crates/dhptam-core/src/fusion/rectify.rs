@@ -29,7 +29,8 @@ pub struct EventRectifier {
     pub rect_width: u32,
     /// Rectified image height.
     pub rect_height: u32,
-    /// `v · width + u` → `v' · rect_width + u'`, or [`OUTSIDE`].
+    /// `v · width + u` → `v' · 2¹⁶ + u'`, or [`OUTSIDE`] (rectified coordinates are `u16`, and
+    /// `v' = 2¹⁶ − 1` cannot occur, so the marker is no pixel).
     table: Vec<u32>,
 }
 
@@ -63,14 +64,18 @@ impl EventRectifier {
     pub fn new(rect: &RectifiedStereo, side: Side) -> Self {
         let camera = rect.camera(side);
         let (w, h) = (camera.width as usize, camera.height as usize);
-        let (rw, rh) = (f64::from(rect.width), f64::from(rect.height));
+        // Rectified pixels are u16 (the last row value is the table's marker).
+        let (rw, rh) = (
+            f64::from(rect.width).min(65536.0),
+            f64::from(rect.height).min(65535.0),
+        );
         let mut table = vec![OUTSIDE; w * h];
         table.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
             for (u, entry) in row.iter_mut().enumerate() {
                 if let Some(r) = rect.rectify_pixel(side, &Vector2::new(u as f64, v as f64)) {
                     let (ru, rv) = (r.x.round(), r.y.round());
                     if (0.0..rw).contains(&ru) && (0.0..rh).contains(&rv) {
-                        *entry = rv as u32 * rect.width + ru as u32;
+                        *entry = ((rv as u32) << 16) | ru as u32;
                     }
                 }
             }
@@ -89,12 +94,8 @@ impl EventRectifier {
         let entry = *self
             .table
             .get(usize::from(v) * self.width as usize + usize::from(u))?;
-        (entry != OUTSIDE && u32::from(u) < self.width).then(|| {
-            (
-                (entry % self.rect_width) as u16,
-                (entry / self.rect_width) as u16,
-            )
-        })
+        (entry != OUTSIDE && u32::from(u) < self.width)
+            .then_some(((entry & 0xFFFF) as u16, (entry >> 16) as u16))
     }
 
     /// Rectifies a window; raw coordinates outside the raw image are an error (see
@@ -110,24 +111,26 @@ impl EventRectifier {
     ) -> Result<RectifiedEvents> {
         events.validate(self.width, self.height, t_start_ns, t_end_ns)?;
         let n = events.len();
-        // Pass 1: the rectified pixel index of every event (or OUTSIDE), in parallel.
-        let mut index = vec![OUTSIDE; n];
-        index
+        // Pass 1: the rectified pixel index of every event (or OUTSIDE) and, per chunk, the
+        // kept count, which places each chunk's output after the previous chunks' outputs.
+        // Zeroed pages without a fill pass: every slot is written below.
+        let mut index = vec![0u32; n];
+        let width = self.width as usize;
+        let counts: Vec<usize> = index
             .par_chunks_mut(APPLY_CHUNK)
             .enumerate()
-            .for_each(|(c, out)| {
+            .map(|(c, out)| {
                 let start = c * APPLY_CHUNK;
-                for (k, slot) in out.iter_mut().enumerate() {
-                    let (u, v) = (events.x[start + k], events.y[start + k]);
+                let xs = &events.x[start..start + out.len()];
+                let ys = &events.y[start..start + out.len()];
+                let mut kept = 0;
+                for ((slot, &u), &v) in out.iter_mut().zip(xs).zip(ys) {
                     // validate() guaranteed u < width and v < height.
-                    *slot = self.table[usize::from(v) * self.width as usize + usize::from(u)];
+                    *slot = self.table[usize::from(v) * width + usize::from(u)];
+                    kept += usize::from(*slot != OUTSIDE);
                 }
-            });
-        // Pass 2: per chunk, the kept count, which places each chunk's output after the
-        // previous chunks' outputs.
-        let counts: Vec<usize> = index
-            .par_chunks(APPLY_CHUNK)
-            .map(|chunk| chunk.iter().filter(|&&e| e != OUTSIDE).count())
+                kept
+            })
             .collect();
         let total: usize = counts.iter().sum();
         let mut out = RectifiedEvents {
@@ -136,8 +139,7 @@ impl EventRectifier {
             t_ns: vec![0; total],
             p: vec![0; total],
         };
-        // Pass 3: every chunk writes its kept events into its own disjoint output ranges.
-        let rect_width = self.rect_width;
+        // Pass 2: every chunk writes its kept events into its own disjoint output ranges.
         let mut xs = split_at_offsets(&mut out.x, &counts);
         let mut ys = split_at_offsets(&mut out.y, &counts);
         let mut ts = split_at_offsets(&mut out.t_ns, &counts);
@@ -152,8 +154,8 @@ impl EventRectifier {
                 let mut j = 0;
                 for (k, &e) in (start..end).zip(&index[start..end]) {
                     if e != OUTSIDE {
-                        xo[j] = (e % rect_width) as u16;
-                        yo[j] = (e / rect_width) as u16;
+                        xo[j] = (e & 0xFFFF) as u16;
+                        yo[j] = (e >> 16) as u16;
                         to[j] = events.t_ns[k];
                         po[j] = events.p[k];
                         j += 1;
