@@ -26,12 +26,15 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def default_trajectories() -> Path:
+    """``$DHPTAM_SHARED/data/trajectories``, else ``../shared/data/trajectories``."""
     root = Path(os.environ.get("DHPTAM_SHARED", REPO.parent / "shared"))
     return root / "data" / "trajectories"
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--trajectories", type=Path, default=default_trajectories())
     parser.add_argument("--duration", type=float, default=4.0, help="seconds of each trajectory (default 4)")
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
