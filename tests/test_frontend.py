@@ -210,6 +210,8 @@ def test_auto_plane_depth_is_the_median_scene_depth(sequence) -> None:  # type: 
     sim = simulator_like("tiny")
     truth = float(np.nanmedian(sim.render_depth(0, int(sequence.frames.t_mid_ns[0]))))
     assert fe.plane_depth_m == pytest.approx(truth, rel=0.15), (fe.plane_depth_m, truth)
+    # The events mode measures the same depth (its β is always 1, the exposure test is not).
+    assert Frontend(sequence, "events", plane_depth="auto", prefetch=0).plane_depth_m == fe.plane_depth_m
     assert Frontend(sequence, "fusion", plane_depth=1.5).plane_depth_m == 1.5
     assert Frontend(sequence, "fusion").plane_depth_m == 0.0  # the config's default: infinity
     with pytest.raises(InputError, match="plane_depth"):

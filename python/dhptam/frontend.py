@@ -266,10 +266,13 @@ class Frontend:
         range; 0 (infinity) when none has enough valid disparities."""
         from .depth import sgbm
 
+        # Exposure test of the fusion mode whatever this front-end's mode: in mode "events"
+        # choose_beta would answer "events" for every frame and no depth would ever be measured.
+        exposure_config = _with_mode(self.config, "fusion")
         for k in range(self.start, min(self.stop, self.start + max_tries)):
             pair = self.sequence.frames[k]
             left, right = self._rectify_frame(pair.left, "left"), self._rectify_frame(pair.right, "right")
-            if choose_beta(left, None, self.config).bias != "aps":
+            if choose_beta(left, None, exposure_config).bias != "aps":
                 continue
             inverse = sgbm(left, right, self.calibration)
             valid = inverse[np.isfinite(inverse)]

@@ -1,0 +1,104 @@
+"""Accuracy on `normal`-lighting simulator sequences driven by real trajectories (issue #8).
+
+For every trajectory file (``*.csv`` / ``*.tum``) of the folder ``--trajectories`` (default:
+``$DHPTAM_SHARED/data/trajectories``, else ``../shared/data/trajectories`` beside the
+repository) the simulator renders the first ``--duration`` seconds of the trajectory, fitted
+into the desk room, with the small rig (320×320 frames, 320×180 events) under normal lighting
+(the ``desk`` preset with the file's motion). Each sequence is generated once into the dhptam
+cache (``$DHPTAM_CACHE_DIR`` or ``~/.cache/dhptam``, under ``sequences/normal-seed<S>-<D>s/``) and
+reused. dhptam then runs on it in every mode and is evaluated against the simulator's ground
+truth (evo, SE(3) alignment, left frame camera). Prints a Markdown table for
+docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` under ``--out``.
+
+    python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
+        [--out bench-accuracy] [--sync]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def default_trajectories() -> Path:
+    """``$DHPTAM_SHARED/data/trajectories``, else ``../shared/data/trajectories``."""
+    root = Path(os.environ.get("DHPTAM_SHARED", REPO.parent / "shared"))
+    return root / "data" / "trajectories"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--trajectories", type=Path, default=default_trajectories())
+    parser.add_argument("--duration", type=float, default=4.0, help="seconds of each trajectory (default 4)")
+    parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
+    parser.add_argument("--modes", default="fusion,frames,events")
+    parser.add_argument("--out", type=Path, default=Path("bench-accuracy"))
+    parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
+    args = parser.parse_args()
+
+    from dhptam.demo import GROUND_TRUTH, cache_dir
+    from dhptam.eval import evaluate, load_trajectory, write_result
+    from dhptam.run import MODES, run
+    from dhptam.sim import simulate
+    from dhptam.trajectory import atomic_write_text
+
+    modes = [m for m in args.modes.split(",") if m]
+    for m in modes:
+        if m not in MODES:
+            parser.error(f"unknown mode {m!r}; choose from {', '.join(MODES)}")
+    if not args.trajectories.is_dir():
+        parser.error(f"trajectory folder {args.trajectories} does not exist (set DHPTAM_SHARED)")
+    files = sorted(p for p in args.trajectories.iterdir() if p.suffix in (".csv", ".tum", ".txt"))
+    if not files:
+        parser.error(f"no .csv/.tum/.txt trajectory in {args.trajectories}")
+
+    root = cache_dir() / "sequences" / f"normal-seed{args.seed}-{args.duration:g}s"
+    lines = [
+        f"Sequences: first {args.duration:g} s of each trajectory, `desk` preset (small rig, normal "
+        f"lighting), seed {args.seed}; {'synchronous' if args.sync else 'threaded'} mapping; "
+        f"{platform.node()}, {os.cpu_count()} CPUs.",
+        "",
+        "| trajectory | mode | frames | tracked | coverage | path [m] | ATE RMSE [m] | ATE [% of path] |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for path in files:
+        name = path.stem
+        sequence = root / name
+        if not (sequence / GROUND_TRUTH).is_file():
+            print(f"simulating {name} into {sequence} (once; cached)", file=sys.stderr)
+            simulate(
+                root,
+                preset="desk",
+                name=name,
+                seed=args.seed,
+                duration_s=args.duration,
+                trajectory=str(path),
+                overwrite=True,
+            )
+        reference = load_trajectory(sequence / GROUND_TRUTH)
+        for mode in modes:
+            out = args.out / name / mode
+            result = run(sequence, out, mode=mode, progress=False, threaded=not args.sync)
+            ev = evaluate(load_trajectory(result.files["trajectory_frame_left"]), reference, align="se3")
+            write_result(ev, out, name="eval")
+            lines.append(
+                f"| {path.stem} | {mode} | {result.frames} | {result.tracked} | {100 * ev.coverage:.0f} % "
+                f"| {ev.path_length_m:.3f} | {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} |"
+            )
+            print(lines[-1], file=sys.stderr)
+    table = "\n".join(lines) + "\n"
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out / "report.md", table)
+    sys.stdout.write(table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
