@@ -14,9 +14,10 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__, _core
-from .errors import DhptamError, InputError
+from .errors import DhptamError, InputError, InternalError
 
 EXIT_USAGE = 2
+EXIT_FAILURE = 1
 
 
 def _config_command(args: argparse.Namespace) -> int:
@@ -393,7 +394,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return int(args.func(args))
+    except InternalError as error:
+        print(f"dhptam {args.command}: {error}", file=sys.stderr)
+        return EXIT_FAILURE
     except DhptamError as error:
+        print(f"dhptam {args.command}: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as error:
+        # A file the user named could not be read or written (missing, a folder, no
+        # permission, disk full): an input problem, reported without a traceback.
         print(f"dhptam {args.command}: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

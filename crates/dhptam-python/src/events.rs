@@ -12,6 +12,7 @@ use numpy::{
 };
 use pyo3::prelude::*;
 
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 
 /// A contiguous 1-D array of exactly `T`, borrowed in place.
@@ -58,7 +59,7 @@ fn image<'py>(
         exact(&window.3, "p")?,
     )
     .py()?;
-    let data = py.detach(|| f(&slice)).py()?;
+    let data = py.detach_guarded("events::image", || f(&slice))?.py()?;
     let pixels = width as usize * height as usize;
     let channels = data.len().checked_div(pixels).unwrap_or(0);
     Array3::from_shape_vec((height as usize, width as usize, channels), data)
@@ -188,8 +189,10 @@ pub fn _e3ct_scales(
         }
         slices.push(tensor_slice(t, &name)?);
     }
-    py.detach(|| events::channel_scales(&slices, channels, percentile))
-        .py()
+    py.detach_guarded("events::_e3ct_scales", || {
+        events::channel_scales(&slices, channels, percentile)
+    })?
+    .py()
 }
 
 /// A copy of `tensor` (H, W, C) divided per channel by `scales` and clipped to [0, 1].
@@ -213,7 +216,10 @@ pub fn _e3ct_apply_scales<'py>(
         let data = rw
             .as_slice_mut()
             .map_err(|_| input_error("tensor", "a contiguous copy", "a strided array"))?;
-        py.detach(|| events::apply_scales(data, &scales)).py()?;
+        py.detach_guarded("events::_e3ct_apply_scales", || {
+            events::apply_scales(data, &scales)
+        })?
+        .py()?;
     }
     Ok(out)
 }
