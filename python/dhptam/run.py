@@ -19,13 +19,16 @@ a file; Ctrl-C or a failure mid-run still writes everything done so far.
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import queue
+import tempfile
 import threading
 import time
+from array import array
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -130,7 +133,7 @@ def _stage(source: Iterator[Any], work: Callable[[Any], Any], name: str, depth: 
             close()
 
 
-def _stats(values: list[float]) -> dict[str, float]:
+def _stats(values: Sequence[float]) -> dict[str, float]:
     if not values:
         return {"count": 0}
     a = np.asarray(values) * 1e3
@@ -222,13 +225,23 @@ class _Outputs:
     def __init__(self, out: Path, rect_from_cam: Any) -> None:
         self.out = out
         self.rect_from_cam = rect_from_cam
-        self.rows: list[dict[str, Any]] = []
-        self.times: dict[str, list[float]] = {s: [] for s in STAGES}
+        # Per-frame rows are spooled to an unnamed temporary file as they come, so that memory
+        # stays bounded on long runs (a dict per frame costs ~1 kB: 50 MB for 30 minutes).
+        self.count = 0
+        self.header: list[str] = ["index"]
+        self._spool = tempfile.TemporaryFile("w+", encoding="utf-8", dir=out)  # noqa: SIM115 - closed by close()
+        self.times: dict[str, array[float]] = {s: array("d") for s in STAGES}
 
     def record(self, row: dict[str, Any]) -> None:
-        self.rows.append(row)
+        if self.count == 0:
+            self.header = list(row)
+        self._spool.write(",".join(str(row[h]) for h in self.header) + "\n")
+        self.count += 1
         for s in STAGES:
             self.times[s].append(row[f"{s}_s"])
+
+    def close(self) -> None:
+        self._spool.close()
 
     def write(self, system: Any, config_toml: str, meta: dict[str, Any]) -> dict[str, Path]:
         from .depth import write_ply
@@ -266,10 +279,11 @@ class _Outputs:
         path = self.out / "map.ply"
         write_ply(str(path), system.map_points())
         files["map"] = path
-        header = list(self.rows[0]) if self.rows else ["index"]
-        lines = [",".join(header)] + [",".join(str(r[h]) for h in header) for r in self.rows]
+        self._spool.flush()
+        self._spool.seek(0)
         path = self.out / "frames.csv"
-        atomic_write_text(path, "\n".join(lines) + "\n")
+        atomic_write_text(path, ",".join(self.header) + "\n" + self._spool.read())
+        self._spool.seek(0, io.SEEK_END)
         files["frames"] = path
         timing = {
             "stages": {s: _stats(v) for s, v in self.times.items()},
@@ -345,6 +359,8 @@ def run(
         raise InputError(
             f"unknown features {features!r}; choose one of {', '.join(FEATURES)}", field="features"
         )
+    if max_frames is not None and int(max_frames) < 1:
+        raise InputError(f"max_frames must be at least 1, got {max_frames}", field="max_frames")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -356,6 +372,7 @@ def run(
         frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
         system = System(StereoCalibration(*frontend.calibration), frontend.config, threaded=threaded)
         outputs = _Outputs(out_dir, frontend.rect_from_cam)
+        resources.callback(outputs.close)
         log.info(
             "run: %s, %d frames, mode %s, features %s, out %s",
             sequence,
@@ -370,10 +387,10 @@ def run(
             _track_all(frontend, extractor, system, outputs, states, realtime, progress)
         except KeyboardInterrupt:
             result.interrupted = True
-            log.warning("interrupted by the user after %d frames; writing what was done", len(outputs.rows))
+            log.warning("interrupted by the user after %d frames; writing what was done", outputs.count)
         except BaseException as error:
             result.error = f"{type(error).__name__}: {error}"
-            log.error("run failed after %d frames: %s", len(outputs.rows), result.error)
+            log.error("run failed after %d frames: %s", outputs.count, result.error)
             _finish(system, outputs, frontend, result, states, started, features)
             raise
         _finish(system, outputs, frontend, result, states, started, features)
@@ -394,9 +411,9 @@ def _finish(
     started: float,
     features: str,
 ) -> None:
-    system.shutdown()
-    frontend.close()
-    result.frames = len(outputs.rows)
+    _uninterrupted(system.shutdown, result, "stopping the back-end")
+    _uninterrupted(frontend.close, result, "closing the front-end")
+    result.frames = outputs.count
     result.states = dict(states)
     result.seconds = time.perf_counter() - started
     kt, _ = system.keyframe_trajectory()
@@ -413,7 +430,29 @@ def _finish(
         "interrupted": result.interrupted,
         "error": result.error,
     }
-    result.files = outputs.write(system, frontend.config.to_toml(), meta)
+    config_toml = frontend.config.to_toml()
+    result.files = _uninterrupted(
+        lambda: outputs.write(system, config_toml, meta), result, "writing the outputs"
+    )
+    if result.interrupted and not meta["interrupted"]:
+        # The Ctrl-C came while finishing: say so in timing.json too.
+        meta["interrupted"] = True
+        result.files = outputs.write(system, config_toml, meta)
+
+
+def _uninterrupted(step: Callable[[], Any], result: RunResult, what: str, tries: int = 3) -> Any:
+    """Runs an idempotent finishing step to its end even if Ctrl-C arrives meanwhile: the
+    interrupt is remembered in ``result`` and the step is run again (every output is written
+    atomically, so a repeated write replaces whole files), up to ``tries`` times."""
+    for attempt in range(tries):
+        try:
+            return step()
+        except KeyboardInterrupt:
+            result.interrupted = True
+            if attempt == tries - 1:
+                raise
+            log.warning("interrupted while %s; finishing it before stopping", what)
+    return None
 
 
 def _track_all(
