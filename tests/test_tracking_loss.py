@@ -75,9 +75,11 @@ def test_shake_offsets_are_violent_and_vanish_outside_the_span() -> None:
     t = np.linspace(0.0, SHAKE[1], 2001)
     w = shake_offsets(t, SHAKE[1])
     assert np.abs(w[[0, -1]]).max() < 1e-9
-    assert np.abs(w[:, :3]).max() > 0.25  # rad
-    rate = np.abs(np.diff(w[:, :3], axis=0)).max() / (t[1] - t[0])
-    assert rate > 8.0  # rad/s
+    angle = np.linalg.norm(w[:, :3], axis=1)
+    assert angle.max() > 0.3  # rad
+    rate = np.linalg.norm(np.diff(w[:, :3], axis=0), axis=1).max() / (t[1] - t[0])
+    assert rate > 15.0  # rad/s
+    assert np.abs(w[:, 3:]).max() > 0.02  # m
 
 
 @pytest.mark.parametrize("mode", ["frames", "fusion"])

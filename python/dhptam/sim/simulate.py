@@ -110,8 +110,9 @@ def simulate(
         uncovering gives no burst of events (a real sensor would give one).
     shake
         ``(start_s, duration_s)``: a violent hand shake added to the motion over that span
-        (see :func:`shake_offsets`): rotation up to about 0.35 rad about every axis at
-        6-9 Hz and a few centimetres of translation, faded in and out over 0.1 s.
+        (see :func:`shake_offsets`): rotation up to about 0.33 rad about all axes at
+        6-9 Hz (rates up to about 20 rad/s) and a few centimetres of translation, faded in and
+        out over 0.1 s.
 
     Returns
     -------
@@ -217,9 +218,9 @@ def shake_offsets(t_s: npt.NDArray[np.float64], duration_s: float) -> npt.NDArra
     """The violent shake: body-frame rotation vectors (rad) and translations (m), (N, 6),
     at times ``t_s`` counted from the start of the shake.
 
-    Sums of sines at 6-9 Hz with amplitudes 0.2-0.25 rad per axis (peaks near 0.35 rad, angular
-    rates above 10 rad/s) and 2-3 cm, under a raised-cosine envelope of 0.1 s at both ends
-    (zero outside ``[0, duration_s]``).
+    Sums of sines at 6-9 Hz with amplitudes up to 0.2-0.25 rad per axis (rotation angles up to
+    about 0.33 rad, angular rates up to about 20 rad/s) and 2-3 cm, under a raised-cosine
+    envelope of 0.1 s at both ends (zero outside ``[0, duration_s]``).
     """
     ramp = 0.1
     env = np.clip(np.minimum(t_s, duration_s - t_s) / ramp, 0.0, 1.0)
