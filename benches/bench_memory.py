@@ -74,6 +74,33 @@ def _sequence(cache: Path, minutes: float, seed: int, fps: float) -> Path:
     return summary.path
 
 
+def _repeated(sequence: Path, times: int) -> Path:
+    """The sequence played ``times`` times in a row (timestamps shifted by its length), written
+    next to it in the TUM-VIE layout. The closed-loop motion ends where it starts, so the
+    camera path is continuous and every repetition revisits mapped places."""
+    from dhptam.datasets import TumVieWriter, load_tumvie
+    from dhptam.sim import IMU_FROM_MARKER
+
+    name = f"{sequence.name}-x{times}"
+    if (sequence.parent / name / "done").is_file():
+        return sequence.parent / name
+    with load_tumvie(sequence) as seq:
+        frames = seq.frames
+        step = int(frames.t_ns[1] - frames.t_ns[0])
+        period = int(frames.t_ns[-1] - frames.t_ns[0]) + step
+        with TumVieWriter(sequence.parent, name, seq.calibration, IMU_FROM_MARKER, overwrite=True) as writer:
+            for r in range(times):
+                for k in range(len(frames)):
+                    pair = frames[k]
+                    writer.add_frame_pair(pair.t_ns + r * period, pair.exposure_ns, pair.left, pair.right)
+                    t0 = int(frames.t_ns[0]) + k * step
+                    for side, source in seq.events.items():
+                        w = source.window(t0, t0 + step)
+                        writer.add_events(side, w.x, w.y, w.t_ns + r * period, w.p)
+    (sequence.parent / name / "done").write_text("")
+    return sequence.parent / name
+
+
 def measure(sequence: Path, out: Path, mode: str, interval_s: float, fps: float) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "dhptam", "run", "--sequence", str(sequence), "--out", str(out / "run")]
@@ -145,6 +172,9 @@ def main() -> None:
     parser.add_argument("--cache", default=os.path.expanduser("~/.cache/dhptam/bench-memory"))
     parser.add_argument("--out", default="bench-memory")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--repeat", type=int, default=1, help="play each simulated sequence this many times in a row"
+    )
     parser.add_argument("--fps", type=float, default=20.0, help="frame rate of the simulated sequence [Hz]")
     parser.add_argument("--interval", type=float, default=1.0, help="RSS sampling period [s]")
     args = parser.parse_args()
@@ -158,6 +188,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|")
     for minutes in args.minutes or [10.0]:
         seq = _sequence(cache, minutes, args.seed, args.fps)
+        if args.repeat > 1:
+            seq = _repeated(seq, args.repeat)
         r = measure(seq, Path(args.out) / seq.name, args.mode, args.interval, args.fps)
         print(
             f"| {r['sequence']} | {r['mode']} | {r['frames']} | {r['wall_s']:.0f} "
