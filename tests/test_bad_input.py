@@ -452,7 +452,7 @@ TUM_OK = "# t x y z qx qy qz qw\n" + "".join(f"{0.1 * k:.1f} {0.01 * k} 0 0 0 0 
             ["simulate", "--preset", "tiny", "--out", "{d}/s", "--duration", "0.1", "--quiet"],
             "s",
         ),
-        ({}, ["simulate", "--preset", "tiny", "--out", "{d}/s", "--blackout", "1", "--quiet"], "START:DURATION"),
+        ({}, ["simulate", "--preset", "tiny", "--out", "{d}/s", "--blackout", "1"], "START:DURATION"),
         ({}, ["simulate", "--preset", "tiny", "--out", "{d}/s", "--shake", "0.2:-1", "--quiet"], "shake"),
         ({}, ["calibrate-align", "--sequence", "{d}/nope", "--out", "{d}/a.toml"], "nope"),
         ({}, ["demo", "--out", "{d}/demo", "--modes", "frames,dreams", "-q"], "dreams"),
