@@ -14,9 +14,10 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__, _core
-from .errors import DhptamError, InputError
+from .errors import DhptamError, InputError, InternalError
 
 EXIT_USAGE = 2
+EXIT_FAILURE = 1
 
 
 def _config_command(args: argparse.Namespace) -> int:
@@ -44,12 +45,25 @@ def _simulate_command(args: argparse.Namespace) -> int:
         config=config,
         overwrite=args.overwrite,
         progress=not args.quiet,
+        blackout=_span(args.blackout, "blackout"),
+        shake=_span(args.shake, "shake"),
     )
     sys.stdout.write(
         f"{summary.path}: {summary.frames} frame pairs, {summary.events_left} + {summary.events_right} "
         f"events, {summary.duration_ns / 1e9:.2f} s simulated in {summary.seconds:.1f} s\n"
     )
     return 0
+
+
+def _span(text: str | None, field: str) -> tuple[float, float] | None:
+    """``START:DURATION`` in seconds."""
+    if text is None:
+        return None
+    try:
+        start, duration = (float(v) for v in text.split(":"))
+    except ValueError:
+        raise InputError(f"--{field} expects START:DURATION in seconds, got {text!r}", field=field) from None
+    return start, duration
 
 
 def _add_simulate_command(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -79,6 +93,14 @@ def _add_simulate_command(sub: argparse._SubParsersAction) -> None:  # type: ign
     simulate.add_argument("--config", metavar="FILE", help="TOML configuration ([sim] section)")
     simulate.add_argument("--overwrite", action="store_true", help="replace an existing sequence")
     simulate.add_argument("--quiet", action="store_true", help="no progress bar")
+    simulate.add_argument(
+        "--blackout",
+        metavar="START:DURATION",
+        help="cover the lenses over this span in seconds: black frames, no events",
+    )
+    simulate.add_argument(
+        "--shake", metavar="START:DURATION", help="add a violent hand shake over this span in seconds"
+    )
     simulate.set_defaults(func=_simulate_command)
 
 
@@ -487,7 +509,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return int(args.func(args))
+    except InternalError as error:
+        print(f"dhptam {args.command}: {error}", file=sys.stderr)
+        return EXIT_FAILURE
     except DhptamError as error:
+        print(f"dhptam {args.command}: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as error:
+        # A file the user named could not be read or written (missing, a folder, no
+        # permission, disk full): an input problem, reported without a traceback.
         print(f"dhptam {args.command}: error: {error}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:

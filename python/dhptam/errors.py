@@ -60,11 +60,17 @@ class MissingDependencyError(DhptamError, ImportError):
     """An optional dependency is not installed; the message says which extra to install."""
 
 
+class InternalError(DhptamError, RuntimeError):
+    """A bug in dhptam: the Rust core panicked. The binding catches the panic at the boundary
+    and raises this instead of PyO3's ``PanicException`` (a ``BaseException``)."""
+
+
 __all__ = [
     "ConfigError",
     "DhptamError",
     "FileError",
     "InputError",
+    "InternalError",
     "MissingDependencyError",
     "NumericalError",
     "ParseError",

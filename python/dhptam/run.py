@@ -23,13 +23,16 @@ otherwise).
 
 from __future__ import annotations
 
+import io
 import json
 import logging
 import queue
+import tempfile
 import threading
 import time
+from array import array
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -134,7 +137,7 @@ def _stage(source: Iterator[Any], work: Callable[[Any], Any], name: str, depth: 
             close()
 
 
-def _stats(values: list[float]) -> dict[str, float]:
+def _stats(values: Sequence[float]) -> dict[str, float]:
     if not values:
         return {"count": 0}
     a = np.asarray(values) * 1e3
@@ -235,15 +238,26 @@ class _Outputs:
         self.extra_formats = extra_formats
         self.out = out
         self.rect_from_cam = rect_from_cam
-        self.rows: list[dict[str, Any]] = []
-        self.times: dict[str, list[float]] = {s: [] for s in STAGES}
+        # Per-frame rows are spooled to an unnamed temporary file as they come, so that memory
+        # stays bounded on long runs (a dict per frame costs ~1 kB: 50 MB for 30 minutes).
+        self.count = 0
+        self.header: list[str] = ["index"]
+        self._spool = tempfile.TemporaryFile("w+", encoding="utf-8", dir=out)  # noqa: SIM115 - closed by close()
+        self.times: dict[str, array[float]] = {s: array("d") for s in STAGES}
         self.meta: dict[str, Any] = {}
         self.recorder: Any = None  # a dhptam.datasets.mcap.McapRecorder with --record
+        self.record_path: Path | None = None
 
     def record(self, row: dict[str, Any]) -> None:
-        self.rows.append(row)
+        if self.count == 0:
+            self.header = list(row)
+        self._spool.write(",".join(str(row[h]) for h in self.header) + "\n")
+        self.count += 1
         for s in STAGES:
             self.times[s].append(row[f"{s}_s"])
+
+    def close(self) -> None:
+        self._spool.close()
 
     def write(self, system: Any, config_toml: str, meta: dict[str, Any]) -> dict[str, Path]:
         from .depth import write_ply
@@ -299,13 +313,18 @@ class _Outputs:
             t_ns_rec, frame_cam_rec = system.trajectory()
             if len(frame_cam_rec):
                 frame_cam_rec = frame_cam_rec @ self.rect_from_cam.matrix()
-            files["record"] = self.recorder.finish(
+            # Finished once: a repeated write (Ctrl-C while finishing) keeps the log written.
+            self.record_path = self.recorder.finish(
                 (t_ns_rec, frame_cam_rec), (kt, kposes), system.map_points()
             )
-        header = list(self.rows[0]) if self.rows else ["index"]
-        lines = [",".join(header)] + [",".join(str(r[h]) for h in header) for r in self.rows]
+            self.recorder = None
+        if self.record_path is not None:
+            files["record"] = self.record_path
+        self._spool.flush()
+        self._spool.seek(0)
         path = self.out / "frames.csv"
-        atomic_write_text(path, "\n".join(lines) + "\n")
+        atomic_write_text(path, ",".join(self.header) + "\n" + self._spool.read())
+        self._spool.seek(0, io.SEEK_END)
         files["frames"] = path
         timing = {
             "stages": {s: _stats(v) for s, v in self.times.items()},
@@ -402,6 +421,8 @@ def run(
         raise InputError(
             f"unknown features {features!r}; choose one of {', '.join(FEATURES)}", field="features"
         )
+    if max_frames is not None and int(max_frames) < 1:
+        raise InputError(f"max_frames must be at least 1, got {max_frames}", field="max_frames")
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
@@ -428,6 +449,7 @@ def run(
             from .datasets.mcap import McapRecorder
 
             outputs.recorder = McapRecorder(record, seq)
+        resources.callback(outputs.close)
         log.info(
             "run: %s, %d frames, mode %s, features %s, out %s",
             sequence,
@@ -442,10 +464,10 @@ def run(
             _track_all(frontend, extractor, system, outputs, states, realtime, progress, sink)
         except KeyboardInterrupt:
             result.interrupted = True
-            log.warning("interrupted by the user after %d frames; writing what was done", len(outputs.rows))
+            log.warning("interrupted by the user after %d frames; writing what was done", outputs.count)
         except BaseException as error:
             result.error = f"{type(error).__name__}: {error}"
-            log.error("run failed after %d frames: %s", len(outputs.rows), result.error)
+            log.error("run failed after %d frames: %s", outputs.count, result.error)
             _finish(system, outputs, frontend, result, states, started, features, sink, reference)
             raise
         _finish(system, outputs, frontend, result, states, started, features, sink, reference)
@@ -479,9 +501,9 @@ def _finish(
     sink: Any,
     reference: Any,
 ) -> None:
-    system.shutdown()
-    frontend.close()
-    result.frames = len(outputs.rows)
+    _uninterrupted(system.shutdown, result, "stopping the back-end")
+    _uninterrupted(frontend.close, result, "closing the front-end")
+    result.frames = outputs.count
     result.states = dict(states)
     result.seconds = time.perf_counter() - started
     kt, _ = system.keyframe_trajectory()
@@ -500,7 +522,14 @@ def _finish(
         "loops_s": [[a / _NS, b / _NS] for a, b in system.loop_closures()],
         **outputs.meta,
     }
-    result.files = outputs.write(system, frontend.config.to_toml(), meta)
+    config_toml = frontend.config.to_toml()
+    result.files = _uninterrupted(
+        lambda: outputs.write(system, config_toml, meta), result, "writing the outputs"
+    )
+    if result.interrupted and not meta["interrupted"]:
+        # The Ctrl-C came while finishing: say so in timing.json too.
+        meta["interrupted"] = True
+        result.files = outputs.write(system, config_toml, meta)
     try:
         sink.finish(system, reference)
     finally:
@@ -508,6 +537,21 @@ def _finish(
     recording = getattr(sink, "path", None)
     if recording is not None:
         result.files["recording"] = recording
+
+
+def _uninterrupted(step: Callable[[], Any], result: RunResult, what: str, tries: int = 3) -> Any:
+    """Runs an idempotent finishing step to its end even if Ctrl-C arrives meanwhile: the
+    interrupt is remembered in ``result`` and the step is run again (every output is written
+    atomically, so a repeated write replaces whole files), up to ``tries`` times."""
+    for attempt in range(tries):
+        try:
+            return step()
+        except KeyboardInterrupt:
+            result.interrupted = True
+            if attempt == tries - 1:
+                raise
+            log.warning("interrupted while %s; finishing it before stopping", what)
+    return None
 
 
 def _track_all(

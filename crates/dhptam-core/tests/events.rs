@@ -397,4 +397,29 @@ fn scales_equal_a_sorted_nearest_rank_on_random_tensors() {
     assert_eq!(copy, in_place);
     assert!(copy.iter().all(|v| (0.0..=1.0).contains(v)));
     assert!(scaled(&a[..4], &scales).is_err());
+/// Regression from the `events` fuzz target (issue 10): a window whose length overflows i64
+/// (here from near `i64::MIN` to a positive end) is an input error for every
+/// representation, not an arithmetic overflow inside the kernels.
+#[test]
+fn a_window_longer_than_i64_is_refused() {
+    use dhptam_core::events::e3ct::{e3ct, E3ctParams, PolarityMode};
+    use dhptam_core::events::{count_image, time_surface, voxel_grid, EventSlice};
+
+    let (x, y, t, p) = ([1u16], [2u16], [5i64], [1i8]);
+    let events = EventSlice::new(&x, &y, &t, &p).expect("consistent arrays");
+    let (t0, t1) = (i64::MIN + 7, 10);
+    let refused = |r: dhptam_core::Result<Vec<f32>>| matches!(r, Err(Error::InvalidInput { ref what, .. }) if what == "t_end_ns");
+    assert!(refused(e3ct(&events, 8, 8, t0, t1, &E3ctParams::default())));
+    assert!(refused(count_image(
+        &events,
+        8,
+        8,
+        t0,
+        t1,
+        PolarityMode::Both
+    )));
+    assert!(refused(time_surface(&events, 8, 8, t0, t1, 10.0)));
+    assert!(refused(voxel_grid(&events, 8, 8, t0, t1, 3)));
+    // The longest representable window is still accepted.
+    assert!(e3ct(&events, 8, 8, 0, i64::MAX, &E3ctParams::default()).is_ok());
 }

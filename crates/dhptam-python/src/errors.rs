@@ -69,3 +69,54 @@ impl<T> IntoPyResult<T> for dhptam_core::Result<T> {
         self.map_err(to_py_err)
     }
 }
+
+// -- panics (issue 10) ----------------------------------------------------------------------
+
+/// Text of a panic payload (`panic!("...")` carries a `&str` or a `String`).
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    if let Some(s) = payload.downcast_ref::<&str>() {
+        (*s).to_owned()
+    } else if let Some(s) = payload.downcast_ref::<String>() {
+        s.clone()
+    } else {
+        "a panic without a message".to_owned()
+    }
+}
+
+/// Turns a panic caught in `what` into `dhptam.errors.InternalError` (a `DhptamError` and a
+/// `RuntimeError`), so that no raw `pyo3_runtime.PanicException` (a `BaseException`, which
+/// `except Exception` does not catch) reaches Python code.
+pub fn panic_to_py_err(what: &str, payload: Box<dyn std::any::Any + Send>) -> PyErr {
+    let message = format!(
+        "internal error in {what}: {} (this is a dhptam bug; please report it with the input)",
+        panic_message(payload.as_ref())
+    );
+    log::error!("{message}");
+    Python::attach(|py| {
+        class(py, "InternalError")
+            .and_then(|cls| cls.call1((message.clone(),)))
+            .map(PyErr::from_value)
+            .unwrap_or_else(|_| PyRuntimeError::new_err(message))
+    })
+}
+
+/// Runs `f` with the GIL released (like `Python::detach`) and converts a panic inside it into
+/// `InternalError` instead of letting it unwind into PyO3.
+pub trait DetachGuarded {
+    /// `detach` + `catch_unwind`; `what` names the call in the error message.
+    fn detach_guarded<T, F>(self, what: &str, f: F) -> PyResult<T>
+    where
+        F: Send + FnOnce() -> T,
+        T: Send;
+}
+
+impl DetachGuarded for Python<'_> {
+    fn detach_guarded<T, F>(self, what: &str, f: F) -> PyResult<T>
+    where
+        F: Send + FnOnce() -> T,
+        T: Send,
+    {
+        self.detach(|| std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)))
+            .map_err(|payload| panic_to_py_err(what, payload))
+    }
+}

@@ -14,6 +14,7 @@ use numpy::{
 };
 use pyo3::prelude::*;
 
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 
 /// A contiguous 1-D array of exactly `T`, borrowed in place.
@@ -60,7 +61,7 @@ fn image<'py>(
         exact(&window.3, "p")?,
     )
     .py()?;
-    let data = py.detach(|| f(&slice)).py()?;
+    let data = py.detach_guarded("events::image", || f(&slice))?.py()?;
     let pixels = width as usize * height as usize;
     let channels = data.len().checked_div(pixels).unwrap_or(0);
     Array3::from_shape_vec((height as usize, width as usize, channels), data)
@@ -220,8 +221,10 @@ pub fn _e3ct_scales(
         }
         slices.push(tensor_slice(t, &name)?);
     }
-    py.detach(|| events::channel_scales(&slices, channels, percentile))
-        .py()
+    py.detach_guarded("events::_e3ct_scales", || {
+        events::channel_scales(&slices, channels, percentile)
+    })?
+    .py()
 }
 
 /// A copy of `tensor` (H, W, C) divided per channel by `scales` and clipped to [0, 1].
@@ -240,7 +243,11 @@ pub fn _e3ct_apply_scales<'py>(
     }
     let shape = tensor.shape().to_vec();
     let src = tensor_slice(&tensor, "tensor")?;
-    let out = py.detach(|| events::scaled(src, &scales)).py()?;
+    let out = py
+        .detach_guarded("events::_e3ct_apply_scales", || {
+            events::scaled(src, &scales)
+        })?
+        .py()?;
     let out = ArrayD::from_shape_vec(IxDyn(&shape), out)
         .map_err(|e| input_error("tensor", "a consistent size", e))?
         .into_pyarray(py);

@@ -14,6 +14,7 @@ use pyo3::prelude::*;
 
 use crate::arrays;
 use crate::config::PyConfig;
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 use crate::events::exact;
 use crate::geometry::PySe3;
@@ -37,7 +38,9 @@ pub fn _choose_beta(
         .map_err(|_| input_error("frame", "a C-contiguous uint8 image", "a strided view"))?;
     let settings = settings(config);
     let d = py
-        .detach(|| fusion::choose_beta(pixels, feature_count, &settings))
+        .detach_guarded("fusion::_choose_beta", || {
+            fusion::choose_beta(pixels, feature_count, &settings)
+        })?
         .py()?;
     Ok((
         d.bias.as_str().to_owned(),
@@ -71,7 +74,9 @@ pub fn _fuse<'py>(
         .as_slice()
         .map_err(|_| input_error("e3ct", "a C-contiguous float32 array", "a strided view"))?;
     let fused = py
-        .detach(|| fusion::fuse_e3ct(pixels, events, c, beta))
+        .detach_guarded("fusion::_fuse", || {
+            fusion::fuse_e3ct(pixels, events, c, beta)
+        })?
         .py()?;
     Array2::from_shape_vec((h, w), fused)
         .map(|a| a.into_pyarray(py))
@@ -118,7 +123,9 @@ pub fn _warp_to_frame<'py>(
         .as_slice()
         .map_err(|_| input_error("image", "a C-contiguous float32 array", "a strided view"))?;
     let out = py
-        .detach(|| warp.warp_image(src, sw, sh, c, width, height))
+        .detach_guarded("fusion::_warp_to_frame", || {
+            warp.warp_image(src, sw, sh, c, width, height)
+        })?
         .py()?;
     let out = Array3::from_shape_vec((height, width, c), out)
         .map_err(|e| input_error("image", "a consistent size", e))?
@@ -162,7 +169,7 @@ impl PyEventRectifier {
     #[new]
     fn new(py: Python<'_>, rect: &PyRectifiedStereo, side: &str) -> PyResult<Self> {
         let side = parse_side(side)?;
-        let inner = py.detach(|| EventRectifier::new(&rect.inner, side));
+        let inner = py.detach_guarded("fusion::new", || EventRectifier::new(&rect.inner, side))?;
         Ok(Self { inner })
     }
 
@@ -203,7 +210,9 @@ impl PyEventRectifier {
         )
         .py()?;
         let out = py
-            .detach(|| self.inner.apply(&slice, t_start_ns, t_end_ns))
+            .detach_guarded("fusion::apply", || {
+                self.inner.apply(&slice, t_start_ns, t_end_ns)
+            })?
             .py()?;
         Ok((
             out.x.into_pyarray(py),

@@ -10,6 +10,7 @@ use numpy::{
 use pyo3::prelude::*;
 
 use crate::arrays;
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 
 /// Pixels (N, 2) with their projection Jacobians (N, 2, 3).
@@ -34,7 +35,7 @@ fn map_points<'py>(
 ) -> PyResult<Bound<'py, PyArray2<f64>>> {
     let n = points.shape()[0];
     let src = points.as_slice()?;
-    let out = py.detach(|| {
+    let out = py.detach_guarded("geometry::map_points", || {
         use rayon::prelude::*;
         let mut out = vec![0.0; src.len()];
         out.par_chunks_mut(3 * 4096)
@@ -45,7 +46,7 @@ fn map_points<'py>(
                 }
             });
         out
-    });
+    })?;
     Ok(Array2::from_shape_vec((n, 3), out)
         .map_err(|e| input_error("points", "(N, 3)", e))?
         .into_pyarray(py))
@@ -443,10 +444,10 @@ impl PyCamera {
         let n = points.shape()[0];
         let src = points.as_slice()?;
         let camera = self.inner;
-        let out = py.detach(|| {
+        let out = py.detach_guarded("geometry::project", || {
             let mut uv = vec![0.0; 2 * n];
             camera.project_points(src, &mut uv).map(|()| uv)
-        });
+        })?;
         Ok(Array2::from_shape_vec((n, 2), out.py()?)
             .map_err(|e| input_error("points", "(N, 3)", e))?
             .into_pyarray(py))
@@ -463,10 +464,10 @@ impl PyCamera {
         let n = pixels.shape()[0];
         let src = pixels.as_slice()?;
         let camera = self.inner;
-        let out = py.detach(|| {
+        let out = py.detach_guarded("geometry::unproject", || {
             let mut xyz = vec![0.0; 3 * n];
             camera.unproject_points(src, &mut xyz).map(|()| xyz)
-        });
+        })?;
         Ok(Array2::from_shape_vec((n, 3), out.py()?)
             .map_err(|e| input_error("pixels", "(N, 2)", e))?
             .into_pyarray(py))

@@ -8,6 +8,7 @@ use numpy::ndarray::Array2;
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 
 /// A descriptor array borrowed from Python: float32 or uint8 rows.
@@ -87,7 +88,9 @@ pub fn match_descriptors<'py>(
         mutual,
     };
     let matches = py
-        .detach(|| matching::match_descriptors(qv, tv, &options))
+        .detach_guarded("matching::match_descriptors", || {
+            matching::match_descriptors(qv, tv, &options)
+        })?
         .py()?;
     let mut pairs = Array2::<i64>::zeros((matches.len(), 2));
     for (row, m) in pairs.outer_iter_mut().zip(&matches) {

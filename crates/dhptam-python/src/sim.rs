@@ -16,6 +16,7 @@ use numpy::{
 use pyo3::prelude::*;
 
 use crate::config::PyConfig;
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 use crate::geometry::{PyCamera, PySe3};
 
@@ -134,7 +135,7 @@ impl PySimulator {
         let shapes =
             std::array::from_fn(|i| (rig[i].camera.height as usize, rig[i].camera.width as usize));
         let inner = py
-            .detach(|| {
+            .detach_guarded("sim::new", || {
                 Simulator::new(
                     Scene::desk_room(textures, seed),
                     rig,
@@ -144,7 +145,7 @@ impl PySimulator {
                     params,
                     seed,
                 )
-            })
+            })?
             .py()?;
         Ok(Self { inner, shapes })
     }
@@ -155,7 +156,7 @@ impl PySimulator {
         py: Python<'py>,
         t_ns: i64,
     ) -> PyResult<(i64, Bound<'py, PyArray2<u8>>, Bound<'py, PyArray2<u8>>)> {
-        let pair = py.detach(|| self.inner.frame_pair(t_ns));
+        let pair = py.detach_guarded("sim::frame_pair", || self.inner.frame_pair(t_ns))?;
         let image = |data: Vec<u8>, (h, w): (usize, usize)| {
             Array2::from_shape_vec((h, w), data).map_err(|e| input_error("frame", "(H, W)", e))
         };
@@ -172,7 +173,9 @@ impl PySimulator {
         py: Python<'py>,
         t_ns: i64,
     ) -> PyResult<(EventArrays<'py>, EventArrays<'py>)> {
-        let [left, right] = py.detach(|| self.inner.events_until(t_ns)).py()?;
+        let [left, right] = py
+            .detach_guarded("sim::events_until", || self.inner.events_until(t_ns))?
+            .py()?;
         Ok((events_to_py(py, &left), events_to_py(py, &right)))
     }
 
@@ -187,7 +190,8 @@ impl PySimulator {
             .shapes
             .get(camera)
             .ok_or_else(|| input_error("camera", "an index 0–3", camera))?;
-        let image = py.detach(|| self.inner.render_radiance(camera, t_ns));
+        let image =
+            py.detach_guarded("sim::render", || self.inner.render_radiance(camera, t_ns))?;
         Ok(Array2::from_shape_vec((h, w), image)
             .map_err(|e| input_error("render", "(H, W)", e))?
             .into_pyarray(py))
@@ -205,7 +209,9 @@ impl PySimulator {
             .shapes
             .get(camera)
             .ok_or_else(|| input_error("camera", "an index 0–3", camera))?;
-        let depth = py.detach(|| self.inner.render_depth(camera, t_ns));
+        let depth = py.detach_guarded("sim::render_depth", || {
+            self.inner.render_depth(camera, t_ns)
+        })?;
         Ok(Array2::from_shape_vec((h, w), depth)
             .map_err(|e| input_error("render_depth", "(H, W)", e))?
             .into_pyarray(py))

@@ -14,6 +14,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use crate::config::PyConfig;
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 use crate::matching::DescriptorArray;
 
@@ -115,7 +116,7 @@ impl PySystem {
             descriptors: rd.view()?,
         };
         let r = py
-            .detach(|| self.with(|s| s.track(t_ns, left, right)))
+            .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
         Ok((
             pose_array(py, &r.world_from_cam),
@@ -129,23 +130,25 @@ impl PySystem {
     fn trajectory<'py>(
         &self,
         py: Python<'py>,
-    ) -> (Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>) {
-        let poses = py.detach(|| self.with(|s| s.trajectory()));
-        poses_arrays(py, &poses)
+    ) -> PyResult<(Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>)> {
+        let poses = py.detach_guarded("slam::trajectory", || self.with(|s| s.trajectory()))?;
+        Ok(poses_arrays(py, &poses))
     }
 
     /// The same for the keyframes.
     fn keyframe_trajectory<'py>(
         &self,
         py: Python<'py>,
-    ) -> (Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>) {
-        let poses = py.detach(|| self.with(|s| s.keyframe_trajectory()));
-        poses_arrays(py, &poses)
+    ) -> PyResult<(Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>)> {
+        let poses = py.detach_guarded("slam::keyframe_trajectory", || {
+            self.with(|s| s.keyframe_trajectory())
+        })?;
+        Ok(poses_arrays(py, &poses))
     }
 
     /// Map point positions (N, 3), world frame, metres.
     fn map_points<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        let points = py.detach(|| self.with(|s| s.map_points()));
+        let points = py.detach_guarded("slam::map_points", || self.with(|s| s.map_points()))?;
         let flat: Vec<f64> = points.iter().flatten().copied().collect();
         let n = points.len();
         numpy::ndarray::Array2::from_shape_vec((n, 3), flat)
@@ -154,8 +157,8 @@ impl PySystem {
     }
 
     /// Loop closures as (query keyframe t_ns, matched keyframe t_ns).
-    fn loop_closures(&self, py: Python<'_>) -> Vec<(i64, i64)> {
-        py.detach(|| self.with(|s| s.loop_closures()))
+    fn loop_closures(&self, py: Python<'_>) -> PyResult<Vec<(i64, i64)>> {
+        py.detach_guarded("slam::loop_closures", || self.with(|s| s.loop_closures()))
     }
 
     /// Stage → {count, total_s, mean_s, max_s}.
@@ -175,17 +178,19 @@ impl PySystem {
 
     /// Writes the map and tracker state to `path`.
     fn save_map(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
-        py.detach(|| self.with(|s| s.save_map(&path))).py()
+        py.detach_guarded("slam::save_map", || self.with(|s| s.save_map(&path)))?
+            .py()
     }
 
     /// Replaces the map and tracker state with those in `path`.
     fn load_map(&self, py: Python<'_>, path: PathBuf) -> PyResult<()> {
-        py.detach(|| self.with(|s| s.load_map(&path))).py()
+        py.detach_guarded("slam::load_map", || self.with(|s| s.load_map(&path)))?
+            .py()
     }
 
     /// Stops the worker threads; later `track` calls raise.
-    fn shutdown(&self, py: Python<'_>) {
-        py.detach(|| self.with(|s| s.shutdown()));
+    fn shutdown(&self, py: Python<'_>) -> PyResult<()> {
+        py.detach_guarded("slam::shutdown", || self.with(|s| s.shutdown()))
     }
 
     /// Whether mapping runs on its own thread.

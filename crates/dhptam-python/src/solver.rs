@@ -15,6 +15,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
 use crate::arrays;
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 
 fn report_dict<'py>(
@@ -98,14 +99,17 @@ pub fn _solve_bal_file<'py>(
         ..Default::default()
     };
     let report = py
-        .detach(|| -> dhptam_core::Result<LmReport> {
-            let mut problem = BalProblem::read(&path)?;
-            let report = solve_bal(&mut problem, &options)?;
-            if let Some(out) = &out {
-                problem.write(out)?;
-            }
-            Ok(report)
-        })
+        .detach_guarded(
+            "solver::_solve_bal_file",
+            || -> dhptam_core::Result<LmReport> {
+                let mut problem = BalProblem::read(&path)?;
+                let report = solve_bal(&mut problem, &options)?;
+                if let Some(out) = &out {
+                    problem.write(out)?;
+                }
+                Ok(report)
+            },
+        )?
         .py()?;
     report_dict(py, &report, threads)
 }
@@ -131,7 +135,8 @@ pub fn _solve_pose_graph_file<'py>(
         ..defaults
     };
     let (report, kind, vertices, edges) = py
-        .detach(
+        .detach_guarded(
+            "solver::_solve_pose_graph_file",
             || -> dhptam_core::Result<(LmReport, &'static str, usize, usize)> {
                 let mut graph = PoseGraph::read(&path)?;
                 let (report, kind, v, e) = match &mut graph {
@@ -153,7 +158,7 @@ pub fn _solve_pose_graph_file<'py>(
                 }
                 Ok((report, kind, v, e))
             },
-        )
+        )?
         .py()?;
     let d = report_dict(py, &report, threads)?;
     d.set_item("kind", kind)?;
@@ -236,7 +241,11 @@ pub fn _bundle_adjust<'py>(
         },
         ..Default::default()
     };
-    let report = py.detach(|| solve_bal(&mut problem, &options)).py()?;
+    let report = py
+        .detach_guarded("solver::_bundle_adjust", || {
+            solve_bal(&mut problem, &options)
+        })?
+        .py()?;
     let n = problem.cameras.len();
     let m = problem.points.len();
     let cams = Array2::from_shape_fn((n, 9), |(i, c)| problem.cameras[i][c]).into_pyarray(py);
@@ -293,7 +302,9 @@ pub fn solve_pnp_ransac<'py>(
         seed,
     };
     let result = py
-        .detach(|| dhptam_core::solver::solve_pnp_ransac(&k, &points, &px, &options))
+        .detach_guarded("solver::solve_pnp_ransac", || {
+            dhptam_core::solver::solve_pnp_ransac(&k, &points, &px, &options)
+        })?
         .py()?;
     Ok(result.map(|r| {
         let m = r.cam_from_world.matrix();

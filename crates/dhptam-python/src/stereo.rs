@@ -17,6 +17,7 @@ use pyo3::prelude::*;
 
 use crate::arrays;
 use crate::config::PyConfig;
+use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
 use crate::geometry::{mat_to_py, PyCamera, PySe3, PySo3};
 
@@ -108,8 +109,10 @@ impl PyRectifiedStereo {
         let shape = self.shape();
         let mut dst = vec![T::default(); shape.0 * shape.1];
         let (w, h) = (camera.width as usize, camera.height as usize);
-        py.detach(|| remap_bilinear(src, w, h, map_x, map_y, &mut dst))
-            .py()?;
+        py.detach_guarded("stereo::resample", || {
+            remap_bilinear(src, w, h, map_x, map_y, &mut dst)
+        })?
+        .py()?;
         let out =
             Array2::from_shape_vec(shape, dst).map_err(|e| input_error("image", expected, e))?;
         Ok(out.into_pyarray(py).into_any().unbind())
@@ -133,7 +136,7 @@ impl PyRectifiedStereo {
         let pixels: PyReadonlyArray2<'py, f64> = arrays::rows(pixels, 2, "pixels")?;
         let n = pixels.shape()[0];
         let src = pixels.as_slice()?;
-        let out = py.detach(|| {
+        let out = py.detach_guarded("stereo::map_pixels", || {
             let mut out = vec![f64::NAN; 2 * n];
             for (q, o) in src.chunks_exact(2).zip(out.chunks_exact_mut(2)) {
                 if let Some(r) = f(&Vector2::new(q[0], q[1])) {
@@ -142,7 +145,7 @@ impl PyRectifiedStereo {
                 }
             }
             out
-        });
+        })?;
         Ok(Array2::from_shape_vec((n, 2), out)
             .map_err(|e| input_error("pixels", "(N, 2)", e))?
             .into_pyarray(py))
@@ -159,7 +162,9 @@ impl PyRectifiedStereo {
             .map(|c| c.inner.rectification.clone())
             .unwrap_or_default();
         let rig = rig.inner;
-        let inner = py.detach(|| RectifiedStereo::new(&rig, &settings)).py()?;
+        let inner = py
+            .detach_guarded("stereo::new", || RectifiedStereo::new(&rig, &settings))?
+            .py()?;
         Ok(Self {
             inner,
             tables: [OnceLock::new(), OnceLock::new()],
@@ -270,7 +275,8 @@ impl PyRectifiedStereo {
         side: &str,
     ) -> PyResult<(Bound<'py, PyArray2<f32>>, Bound<'py, PyArray2<f32>>)> {
         let side = parse_side(side)?;
-        let (map_x, map_y) = py.detach(|| self.tables(side).clone());
+        let (map_x, map_y) =
+            py.detach_guarded("stereo::remap_tables", || self.tables(side).clone())?;
         let shape = self.shape();
         let to_py = |v: Vec<f32>| Array2::from_shape_vec(shape, v).map(|a| a.into_pyarray(py));
         Ok((
@@ -349,20 +355,21 @@ impl PyRectifiedStereo {
         }
         let (left, right) = (uv_left.as_slice()?, u_right.as_slice()?);
         let (pinhole, baseline) = (self.inner.pinhole, self.inner.baseline_m);
-        let results: Vec<Result<Triangulated, Rejected>> = py.detach(|| {
-            left.chunks_exact(2)
-                .zip(right)
-                .map(|(l, &r)| {
-                    triangulate_rectified(
-                        &pinhole,
-                        baseline,
-                        &Vector2::new(l[0], l[1]),
-                        r,
-                        &settings,
-                    )
-                })
-                .collect()
-        });
+        let results: Vec<Result<Triangulated, Rejected>> =
+            py.detach_guarded("stereo::triangulate", || {
+                left.chunks_exact(2)
+                    .zip(right)
+                    .map(|(l, &r)| {
+                        triangulate_rectified(
+                            &pinhole,
+                            baseline,
+                            &Vector2::new(l[0], l[1]),
+                            r,
+                            &settings,
+                        )
+                    })
+                    .collect()
+            })?;
         Ok(collect_points(py, &results))
     }
 

@@ -470,12 +470,32 @@ def load_tumvie(
     try:
         for side in EVENT_SIDES:
             events[side] = EventSource(seq_dir / f"{name}-events_{side}.h5")
+            _check_event_overlap(events[side], seq_dir / f"{name}-events_{side}.h5", frames)
         ground_truth, imu_from_marker = _load_ground_truth(seq_dir, rig, mocap_calibration)
     except BaseException:
         for source in events.values():
             source.close()
         raise
     return Sequence(name, seq_dir, rig, frames, events, ground_truth, imu_from_marker)
+
+
+def _check_event_overlap(source: EventSource, path: Path, frames: Frames) -> None:
+    """Events and frames share one clock: an event stream entirely outside the frames' span
+    (e.g. written in ns or s where µs belong, or from another recording) is refused rather
+    than giving empty event windows for every frame. An empty event file is allowed."""
+    if len(source) == 0 or len(frames) == 0:
+        return
+    lo, hi = source.t_range_ns
+    f_lo = int(frames.t_ns[0])
+    f_hi = int(frames.t_ns[-1] + frames.exposure_ns[-1])
+    if hi <= f_lo or lo > f_hi:
+        raise InputError(
+            f"{path}: the events span [{lo / 1e9:.6f}, {hi / 1e9:.6f}] s but the frames span "
+            f"[{f_lo / 1e9:.6f}, {f_hi / 1e9:.6f}] s; both must share one clock "
+            "(events/t in microseconds expected)",
+            path=str(path),
+            field="events/t",
+        )
 
 
 def _load_frames(seq_dir: Path, rig: RigCalibration) -> Frames:

@@ -74,6 +74,8 @@ def simulate(
     config: Config | None = None,
     overwrite: bool = False,
     progress: bool = False,
+    blackout: tuple[float, float] | None = None,
+    shake: tuple[float, float] | None = None,
 ) -> SimulationSummary:
     """Simulate a sequence and write it to ``out_dir / name`` in the TUM-VIE layout.
 
@@ -101,6 +103,16 @@ def simulate(
         Replace an existing sequence folder.
     progress
         Show a progress bar (tqdm) on stderr.
+    blackout
+        ``(start_s, duration_s)``: the lenses are covered over that span (tracking-loss tests).
+        Frames whose exposure starts inside it are black (all zero) and the events inside it
+        are dropped; the event cameras' per-pixel references keep following the scene, so the
+        uncovering gives no burst of events (a real sensor would give one).
+    shake
+        ``(start_s, duration_s)``: a violent hand shake added to the motion over that span
+        (see :func:`shake_offsets`): rotation up to about 0.33 rad about all axes at
+        6-9 Hz (rates up to about 20 rad/s) and a few centimetres of translation, faded in and
+        out over 0.1 s.
 
     Returns
     -------
@@ -125,6 +137,9 @@ def simulate(
     requested_ns = round((duration_s if duration_s is not None else spec.duration_s) * _NS)
     motion = trajectory or spec.motion
     traj_t, traj_poses = _trajectory(motion, requested_ns)
+    if shake is not None:
+        traj_poses = _shaken(traj_t, traj_poses, _span_ns(shake, "shake"))
+    covered = _span_ns(blackout, "blackout") if blackout is not None else None
     duration_ns = min(requested_ns, int(traj_t[-1]))
     frame_step_ns = round(_NS / fps)
     n_frames = max(1, duration_ns // frame_step_ns)
@@ -158,9 +173,14 @@ def simulate(
         for k in range(n_frames):
             t_ns = k * frame_step_ns
             exposure_ns, left, right = sim.frame_pair(t_ns)
+            if covered is not None and covered[0] <= t_ns < covered[1]:
+                left, right = np.zeros_like(left), np.zeros_like(right)
             writer.add_frame_pair(t_ns, exposure_ns, left, right)
             t_end = duration_ns if k == n_frames - 1 else (k + 1) * frame_step_ns
             for side, (x, y, t, p) in zip(("left", "right"), sim.events_until(t_end), strict=True):
+                if covered is not None:
+                    seen = (t < covered[0]) | (t >= covered[1])
+                    x, y, t, p = x[seen], y[seen], t[seen], p[seen]
                 writer.add_events(side, x, y, t, p)
                 counts[side] += len(t)
             if bar is not None:
@@ -183,6 +203,64 @@ def simulate(
     )
     log.info("wrote %s in %.1f s (%d renders)", path, summary.seconds, summary.renders)
     return summary
+
+
+def _span_ns(span: tuple[float, float], field: str) -> tuple[int, int]:
+    start_s, duration_s = (float(v) for v in span)
+    if not (np.isfinite(start_s) and np.isfinite(duration_s) and start_s >= 0 and duration_s > 0):
+        raise InputError(
+            f"{field} must be (start_s >= 0, duration_s > 0), got ({start_s}, {duration_s})", field=field
+        )
+    return round(start_s * _NS), round((start_s + duration_s) * _NS)
+
+
+def shake_offsets(t_s: npt.NDArray[np.float64], duration_s: float) -> npt.NDArray[np.float64]:
+    """The violent shake: body-frame rotation vectors (rad) and translations (m), (N, 6),
+    at times ``t_s`` counted from the start of the shake.
+
+    Sums of sines at 6-9 Hz with amplitudes up to 0.2-0.25 rad per axis (rotation angles up to
+    about 0.33 rad, angular rates up to about 20 rad/s) and 2-3 cm, under a raised-cosine
+    envelope of 0.1 s at both ends (zero outside ``[0, duration_s]``).
+    """
+    ramp = 0.1
+    env = np.clip(np.minimum(t_s, duration_s - t_s) / ramp, 0.0, 1.0)
+    env = 0.5 - 0.5 * np.cos(np.pi * env)
+    out = np.empty((len(t_s), 6))
+    for axis, (amp_rad, amp_m, hz, phase) in enumerate(
+        ((0.25, 0.03, 7.3, 0.0), (0.22, 0.02, 8.9, 1.1), (0.20, 0.025, 6.1, 2.3))
+    ):
+        wave = np.sin(2 * np.pi * hz * t_s + phase) + 0.4 * np.sin(2 * np.pi * 1.7 * hz * t_s + 2 * phase)
+        out[:, axis] = amp_rad * env * wave / 1.4
+        out[:, 3 + axis] = amp_m * env * np.cos(2 * np.pi * hz * t_s + phase)
+    return out
+
+
+def _shaken(
+    t_ns: npt.NDArray[np.int64], poses: npt.NDArray[np.float64], span_ns: tuple[int, int]
+) -> npt.NDArray[np.float64]:
+    """``world_from_body · [exp(ω(t)) | τ(t)]`` over the shake span, poses as (N, 7) x-y-z-w."""
+    inside = (t_ns >= span_ns[0]) & (t_ns <= span_ns[1])
+    offsets = shake_offsets((t_ns[inside] - span_ns[0]) / _NS, (span_ns[1] - span_ns[0]) / _NS)
+    out = poses.copy()
+    q_body = poses[inside, 3:]
+    angle = np.linalg.norm(offsets[:, :3], axis=1, keepdims=True)
+    axis = offsets[:, :3] / np.maximum(angle, 1e-12)
+    q_shake = np.hstack([axis * np.sin(angle / 2), np.cos(angle / 2)])
+    out[inside, :3] = poses[inside, :3] + _rotate(q_body, offsets[:, 3:])
+    out[inside, 3:] = _quat_mul(q_body, q_shake)
+    return out
+
+
+def _quat_mul(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Hamilton products of (N, 4) x-y-z-w quaternions."""
+    av, aw, bv, bw = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
+    return np.hstack([aw * bv + bw * av + np.cross(av, bv), aw * bw - np.sum(av * bv, axis=1, keepdims=True)])
+
+
+def _rotate(q: npt.NDArray[np.float64], v: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Rotates (N, 3) vectors by (N, 4) x-y-z-w unit quaternions."""
+    u, w = q[:, :3], q[:, 3:]
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
 def _progress(total: int, enabled: bool):  # type: ignore[no-untyped-def]

@@ -163,5 +163,18 @@ pub(crate) fn check_frame(width: u32, height: u32, t_start_ns: i64, t_end_ns: i6
             t_end_ns,
         ));
     }
+    // Window lengths and event ages are computed as `t_end_ns - t`: refuse windows whose
+    // length does not fit an i64 (found by the `events` fuzz target: the subtraction
+    // overflowed for a window from near i64::MIN to a positive end).
+    if t_end_ns.checked_sub(t_start_ns).is_none() {
+        return Err(Error::invalid(
+            "t_end_ns",
+            format!(
+                "a window shorter than {} ns after t_start_ns = {t_start_ns}",
+                i64::MAX
+            ),
+            t_end_ns,
+        ));
+    }
     Ok(())
 }
