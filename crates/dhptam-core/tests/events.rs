@@ -397,6 +397,8 @@ fn scales_equal_a_sorted_nearest_rank_on_random_tensors() {
     assert_eq!(copy, in_place);
     assert!(copy.iter().all(|v| (0.0..=1.0).contains(v)));
     assert!(scaled(&a[..4], &scales).is_err());
+}
+
 /// Regression from the `events` fuzz target (issue 10): a window whose length overflows i64
 /// (here from near `i64::MIN` to a positive end) is an input error for every
 /// representation, not an arithmetic overflow inside the kernels.
