@@ -41,7 +41,6 @@ Example::
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +59,7 @@ from .sequence import (
     GroundTruth,
     RigCalibration,
     Sequence,
+    WindowedEvents,
 )
 
 EVENTS_TOPIC = "/events/{side}"
@@ -296,7 +296,7 @@ class McapFrames(Frames):
         return np.asarray(image, dtype=np.uint8)
 
 
-class McapEventSource:
+class McapEventSource(WindowedEvents):
     """Random access by time window to the events of one camera in an MCAP log.
 
     Same public interface as :class:`~dhptam.datasets.EventSource`; windows are located through
@@ -357,29 +357,9 @@ class McapEventSource:
         x, y, t, p = self._open().event_slice(self.topic, i0, i1)
         return EventWindow(x=x, y=y, t_ns=t, p=p)
 
-    def iter_windows(
-        self, step_ns: int, t0_ns: int | None = None, t1_ns: int | None = None
-    ) -> Iterator[EventWindow]:
-        """Consecutive windows ``[t0 + k step, t0 + (k + 1) step)`` covering ``[t0, t1)``."""
-        if step_ns <= 0:
-            raise InputError(f"step_ns must be positive, got {step_ns}", field="step_ns")
-        lo, hi = self.t_range_ns
-        t = lo if t0_ns is None else int(t0_ns)
-        end = hi if t1_ns is None else int(t1_ns)
-        while t < end:
-            t_next = min(t + step_ns, end)
-            yield self.window(t, t_next)
-            t = t_next
-
     def close(self) -> None:
         """Release the log (windows can no longer be read)."""
         self._reader = None
-
-    def __enter__(self) -> McapEventSource:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"McapEventSource({str(self.path)!r}, {self.topic}, events={self._n})"

@@ -35,7 +35,7 @@ import numpy.typing as npt
 from ..errors import FileError, InputError, ParseError
 from ..geometry import SE3
 from ._common import pair_stereo
-from .sequence import EventStream, EventWindow, Frames, GroundTruth, RigCalibration, Sequence
+from .sequence import EventStream, EventWindow, Frames, GroundTruth, RigCalibration, Sequence, WindowedEvents
 from .tumvie import compose_poses
 
 EVENT_TOPICS = {"left": "/prophesee/left/events", "right": "/prophesee/right/events"}
@@ -189,7 +189,7 @@ def _ns(ev: npt.NDArray[np.void]) -> npt.NDArray[np.int64]:
     return ev["sec"].astype(np.int64) * 1_000_000_000 + ev["nsec"].astype(np.int64)
 
 
-class BagEventStream:
+class BagEventStream(WindowedEvents):
     """Events of one topic of a bag, by time window (an :class:`~dhptam.datasets.EventStream`)."""
 
     def __init__(self, bag: BagFile, topic: str) -> None:
@@ -296,28 +296,8 @@ class BagEventStream:
             )
         return EventWindow(x=ev["x"].copy(), y=ev["y"].copy(), t_ns=t_ns, p=(ev["p"] != 0).astype(np.int8))
 
-    def iter_windows(
-        self, step_ns: int, t0_ns: int | None = None, t1_ns: int | None = None
-    ) -> Iterator[EventWindow]:
-        """Consecutive windows of ``step_ns`` over ``[t0_ns, t1_ns)``."""
-        if step_ns <= 0:
-            raise InputError(f"step_ns must be positive, got {step_ns}", field="step_ns")
-        lo, hi = self.t_range_ns
-        t = lo if t0_ns is None else int(t0_ns)
-        end = hi if t1_ns is None else int(t1_ns)
-        while t < end:
-            t_next = min(t + step_ns, end)
-            yield self.window(t, t_next)
-            t = t_next
-
     def close(self) -> None:
         """The bag is closed by its sequence."""
-
-    def __enter__(self) -> BagEventStream:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 class BagFrames(Frames):

@@ -171,6 +171,32 @@ class EventStream(Protocol):
     def __exit__(self, *exc: object) -> None: ...
 
 
+class WindowedEvents:
+    """Shared part of the readers whose windows come from :meth:`window`: consecutive windows
+    and the context manager. A subclass provides ``t_range_ns``, ``window`` and ``close``."""
+
+    def iter_windows(
+        self, step_ns: int, t0_ns: int | None = None, t1_ns: int | None = None
+    ) -> Iterator[EventWindow]:
+        """Consecutive windows ``[t0 + k step, t0 + (k + 1) step)`` covering ``[t0, t1)``
+        (default: the stream's time range)."""
+        if step_ns <= 0:
+            raise InputError(f"step_ns must be positive, got {step_ns}", field="step_ns")
+        lo, hi = self.t_range_ns  # type: ignore[attr-defined]
+        t = lo if t0_ns is None else int(t0_ns)
+        end = hi if t1_ns is None else int(t1_ns)
+        while t < end:
+            t_next = min(t + step_ns, end)
+            yield self.window(t, t_next)  # type: ignore[attr-defined]
+            t = t_next
+
+    def __enter__(self) -> Any:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()  # type: ignore[attr-defined]
+
+
 class Frames:
     """Stereo frame pairs in time order; images are decoded from disk on access.
 
