@@ -620,4 +620,5 @@ __all__ = [
     "GroundTruth",
     "RigCalibration",
     "Sequence",
+    "WindowedEvents",
 ]
