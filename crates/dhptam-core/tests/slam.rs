@@ -433,7 +433,9 @@ fn fusion_merges_duplicates_and_refinds_points() {
         ..Default::default()
     };
     let frames = generate(&o);
-    let config = Config::default();
+    // The two keyframes share no points (not covisible): they meet as temporal neighbours.
+    let mut config = Config::default();
+    config.mapping.fuse_temporal = 2;
     // Two keyframes five frames apart, inserted without association (as after tracking loss):
     // every landmark both see is in the map twice. A quarter of the second keyframe's
     // keypoints have no stereo match, so no point: those are for re-finding.
@@ -592,6 +594,8 @@ fn fusion_joins_map_segments_after_reinitialisation() {
     // after it another, whose points duplicate the first segment's landmarks.
     let mut config = Config::default();
     config.loop_closing.min_score = 1.0;
+    // Linking the new segment to the old one needs the temporal neighbours (off by default).
+    config.mapping.fuse_temporal = 2;
     config.mapping.fuse = false;
     let (ate_off, off, restarts) = run_with_glitch(&frames, 40..41, config.clone());
     assert_eq!(restarts, 2);
