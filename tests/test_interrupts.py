@@ -126,7 +126,9 @@ def test_sigint_to_the_command_exits_130_and_keeps_the_outputs(sim_desk_run: Pat
     assert "interrupted" in stdout + stderr
     timing = json.loads((out / "timing.json").read_text())
     assert timing["interrupted"] is True
-    assert len(read_tum(out / "trajectory.tum")[0]) == timing["frames"] < 24
+    # The trajectory holds exactly the frames done; on a slow machine the interrupt may reach
+    # the run only while it finishes (all 24 frames done), which timing.json still records.
+    assert len(read_tum(out / "trajectory.tum")[0]) == timing["frames"] <= 24
 
 
 # -- panics ----------------------------------------------------------------------------------------
