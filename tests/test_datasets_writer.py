@@ -207,10 +207,18 @@ def test_bad_writes_are_refused(tmp_path: Path, rng: np.random.Generator):
     refused("p", writer.add_events, "right", x, y, t, p * 2 - 1)  # ±1 is not the format's 0/1
     refused("t_ns", writer.add_events, "right", x, y, t.astype(np.float64), p)
     refused("events", writer.add_events, "right", x, y[:-1], t, p)
-    writer.add_frame_pair(10, 5, smooth_image(rng), smooth_image(rng))
-    refused("t_ns", writer.add_frame_pair, 10, 5, smooth_image(rng), smooth_image(rng))
-    refused("exposure_ns", writer.add_frame_pair, 20, -1, smooth_image(rng), smooth_image(rng))
-    refused("left", writer.add_frame_pair, 20, 5, smooth_image(rng).astype(np.float32), smooth_image(rng))
+    t_frame = int(t[0])  # inside the events' span: the reader refuses disjoint clocks
+    writer.add_frame_pair(t_frame, 5, smooth_image(rng), smooth_image(rng))
+    refused("t_ns", writer.add_frame_pair, t_frame, 5, smooth_image(rng), smooth_image(rng))
+    refused("exposure_ns", writer.add_frame_pair, t_frame + 10, -1, smooth_image(rng), smooth_image(rng))
+    refused(
+        "left",
+        writer.add_frame_pair,
+        t_frame + 10,
+        5,
+        smooth_image(rng).astype(np.float32),
+        smooth_image(rng),
+    )
     refused("world_from_marker", writer.set_mocap, np.arange(3), np.zeros((3, 6)))
     refused("t_ns", writer.set_mocap, np.array([0, 2, 1]), np.tile([0, 0, 0, 0, 0, 0, 1.0], (3, 1)))
     refused("world_from_marker", writer.set_mocap, np.arange(2), np.full((2, 7), np.nan))
