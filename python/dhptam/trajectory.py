@@ -114,20 +114,7 @@ def write_tum(
     header
         Written as the first line after ``# ``.
     """
-    times = np.asarray(t_ns)
-    if times.ndim != 1 or (times.size and not np.issubdtype(times.dtype, np.integer)):
-        raise InputError(
-            f"t_ns must be a 1-D integer array (nanoseconds), got {times.dtype} {times.shape}", field="t_ns"
-        )
-    rows = poses_to_rows(poses)
-    if rows.shape[0] != times.shape[0]:
-        raise InputError(f"{times.shape[0]} times but {rows.shape[0]} poses", field="poses")
-    if times.size > 1 and np.any(np.diff(times) <= 0):
-        k = int(np.argmax(np.diff(times) <= 0)) + 1
-        raise InputError(f"t_ns must increase strictly; pose {k} is not after pose {k - 1}", field="t_ns")
-    if not np.all(np.isfinite(rows)):
-        k = int(np.argmax(~np.all(np.isfinite(rows), axis=1)))
-        raise InputError(f"pose {k} is not finite: {rows[k].tolist()}", field="poses")
+    times, rows = _checked(t_ns, poses)
     lines = [f"# {header}"] if header else []
     lines += [
         _format_seconds(int(t)) + " " + " ".join(f"{v:.9f}" for v in row)
