@@ -1,7 +1,7 @@
 //! Python classes for the geometry core: `SO3`, `SE3`, `Camera`.
 
 use dhptam_core::geometry::{Camera, Projective, Se3, So3};
-use nalgebra::{Vector3, Vector6};
+use nalgebra::{SMatrix, SVector, Vector3, Vector6};
 use numpy::ndarray::{Array1, Array2, Array3};
 use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyArray3, PyArrayMethods, PyReadonlyArray2,
@@ -25,6 +25,18 @@ pub(crate) fn mat_to_py<'py, const R: usize, const C: usize>(
     m: &nalgebra::SMatrix<f64, R, C>,
 ) -> Bound<'py, PyArray2<f64>> {
     Array2::from_shape_fn((R, C), |(r, c)| m[(r, c)]).into_pyarray(py)
+}
+
+/// Evaluates one of a Lie group's N×N Jacobians at the tangent vector `obj` (called `name` in
+/// errors).
+fn tangent_jacobian<'py, const N: usize>(
+    py: Python<'py>,
+    obj: &Bound<'py, PyAny>,
+    name: &str,
+    jacobian: fn(&SVector<f64, N>) -> SMatrix<f64, N, N>,
+) -> PyResult<Bound<'py, PyArray2<f64>>> {
+    let v = SVector::<f64, N>::from(arrays::vector::<N>(obj, name)?);
+    Ok(mat_to_py(py, &jacobian(&v)))
 }
 
 /// Applies `f` to every row of an (N, 3) array with the GIL released, returning an (N, 3) array.
@@ -140,10 +152,7 @@ impl PySo3 {
         py: Python<'py>,
         phi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &So3::left_jacobian(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
-        ))
+        tangent_jacobian(py, phi, "phi", So3::left_jacobian)
     }
 
     /// Right Jacobian J_r(φ) = J_l(−φ).
@@ -152,10 +161,7 @@ impl PySo3 {
         py: Python<'py>,
         phi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &So3::right_jacobian(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
-        ))
+        tangent_jacobian(py, phi, "phi", So3::right_jacobian)
     }
 
     /// Inverse of the left Jacobian.
@@ -164,10 +170,7 @@ impl PySo3 {
         py: Python<'py>,
         phi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &So3::left_jacobian_inverse(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
-        ))
+        tangent_jacobian(py, phi, "phi", So3::left_jacobian_inverse)
     }
 
     /// Inverse of the right Jacobian.
@@ -176,10 +179,7 @@ impl PySo3 {
         py: Python<'py>,
         phi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &So3::right_jacobian_inverse(&Vector3::from(arrays::vector::<3>(phi, "phi")?)),
-        ))
+        tangent_jacobian(py, phi, "phi", So3::right_jacobian_inverse)
     }
 
     /// `R1 @ R2` composes; `R @ points` rotates an (N, 3) array (or one 3-vector).
@@ -307,10 +307,7 @@ impl PySe3 {
         py: Python<'py>,
         xi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &Se3::left_jacobian(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
-        ))
+        tangent_jacobian(py, xi, "xi", Se3::left_jacobian)
     }
 
     /// Right Jacobian J_r(ξ) = J_l(−ξ).
@@ -319,10 +316,7 @@ impl PySe3 {
         py: Python<'py>,
         xi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &Se3::right_jacobian(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
-        ))
+        tangent_jacobian(py, xi, "xi", Se3::right_jacobian)
     }
 
     /// Inverse of the left Jacobian.
@@ -331,10 +325,7 @@ impl PySe3 {
         py: Python<'py>,
         xi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &Se3::left_jacobian_inverse(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
-        ))
+        tangent_jacobian(py, xi, "xi", Se3::left_jacobian_inverse)
     }
 
     /// Inverse of the right Jacobian.
@@ -343,10 +334,7 @@ impl PySe3 {
         py: Python<'py>,
         xi: &Bound<'py, PyAny>,
     ) -> PyResult<Bound<'py, PyArray2<f64>>> {
-        Ok(mat_to_py(
-            py,
-            &Se3::right_jacobian_inverse(&Vector6::from(arrays::vector::<6>(xi, "xi")?)),
-        ))
+        tangent_jacobian(py, xi, "xi", Se3::right_jacobian_inverse)
     }
 
     /// `a_from_b @ b_from_c` composes; `a_from_b @ points_b` transforms an (N, 3) array (or one
