@@ -318,3 +318,40 @@ def test_window_max_equals_max_pool(radius: int) -> None:
     x = torch.randn(2, 3, 37, 53)
     expected = torch.nn.functional.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius)
     torch.testing.assert_close(window_max(x, radius), expected, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("checkpoint", ["faster2d2_WASF_N16", "r2d2_WASF_N16"])
+def test_r2d2_cpu_heads_equal_the_network_on_the_upsampled_map(checkpoint: str) -> None:
+    # The CPU path never builds the upsampled 128-channel map: the Rust core evaluates the
+    # heads from the low-resolution map and descriptors are interpolated at the keypoints.
+    # Both must equal the published network run the straightforward way.
+    from dhptam.features.r2d2 import _sample_upsampled, load_checkpoint
+
+    net = load_checkpoint(shared_path("models", "r2d2", f"{checkpoint}.pt"))
+    net.fuse()
+    x = torch.randn(2, 3, 62, 86, generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        full = net.trunk(x)
+        _, reliability, repeatability = net.heads(full)
+        low = net.trunk(x, upsample=False)
+        weights, bias = (t.numpy() for t in net.head_weights())
+        up = net.arch.upsample
+        nhwc = low.permute(0, 2, 3, 1).contiguous()
+        rel, rep = _core._r2d2_heads(nhwc.numpy(), weights, bias, up)
+        np.testing.assert_allclose(rel, reliability[:, 0].numpy(), atol=2e-6)
+        np.testing.assert_allclose(rep, repeatability[:, 0].numpy(), atol=2e-6)
+        # bfloat16 maps go over as bit patterns and read as their float32 values.
+        low16 = nhwc.to(torch.bfloat16)
+        rel16, _ = _core._r2d2_heads(low16.view(torch.int16).numpy(), weights, bias, up)
+        rel32, _ = _core._r2d2_heads(low16.float().numpy(), weights, bias, up)
+        np.testing.assert_array_equal(rel16, rel32)
+        # Corners, edges and the interior of both images.
+        h, w = full.shape[2:]
+        b = torch.tensor([0, 1, 0, 1, 1])
+        ys = torch.tensor([0, h - 1, 0, h // 2 + 1, 7])
+        xs = torch.tensor([0, w - 1, w - 1, w // 2, 0])
+        np.testing.assert_allclose(_sample_upsampled(low, b, ys, xs, up), full[b, :, ys, xs], atol=1e-6)
+    with pytest.raises(InputError, match="upsample"):
+        _core._r2d2_heads(nhwc.numpy(), weights, bias, 3)
+    with pytest.raises(InputError, match="weights"):
+        _core._r2d2_heads(nhwc.numpy(), weights[:, :-1].copy(), bias, up)

@@ -24,6 +24,7 @@ __all__ = [
     "_e3ct_apply_scales",
     "_e3ct_scales",
     "_fuse",
+    "_r2d2_heads",
     "_log_from_rust",
     "_reset_log_cache",
     "_solve_bal_file",
@@ -288,6 +289,7 @@ def _choose_beta(
     frame: npt.NDArray[np.uint8], feature_count: int | None = None, config: Config | None = None
 ) -> tuple[str, float, float, float]: ...
 def _fuse(frame: npt.NDArray[np.uint8], e3ct: _F32, beta: float) -> npt.NDArray[np.uint8]: ...
+def _r2d2_heads(features: _F32, weights: _F32, bias: _F32, upsample: int) -> tuple[_F32, _F32]: ...
 def _warp_to_frame(
     image: _F32,
     k_event: _ArrayLike,

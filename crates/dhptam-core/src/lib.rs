@@ -15,6 +15,7 @@
 pub mod config;
 pub mod error;
 pub mod events;
+pub mod features;
 pub mod fusion;
 pub mod geometry;
 pub mod io;

@@ -12,6 +12,7 @@ mod arrays;
 mod config;
 mod errors;
 mod events;
+mod features;
 mod fusion;
 mod geometry;
 mod matching;
@@ -85,6 +86,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(events::_voxel_grid, m)?)?;
     m.add_function(wrap_pyfunction!(events::_e3ct_scales, m)?)?;
     m.add_function(wrap_pyfunction!(events::_e3ct_apply_scales, m)?)?;
+    m.add_function(wrap_pyfunction!(features::_r2d2_heads, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_choose_beta, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_fuse, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_warp_to_frame, m)?)?;

@@ -26,7 +26,10 @@ defeat the ratio test of matching). The ``max_keypoints`` best scores are kept.
 
 Both images of a stereo pair go through the network as one batch per scale. Inference folds the
 batch norms into the convolutions (exact up to float rounding) and runs under
-``torch.inference_mode``.
+``torch.inference_mode``. The fast variant's final upsampling is never applied to the whole
+128-channel map: descriptors are interpolated at the keypoints only, and on the CPU the heads
+run in the Rust core (``_core._r2d2_heads``), which interpolates, squares and projects each
+pixel's descriptor in one pass (equal to the torch path to float rounding; tested).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812 - torch's usual name
 from torch import nn
 
+from .. import _core
 from ..errors import FileError, InputError
 from .base import Features, TorchExtractor, refine_subpixel, to_features, window_max
 from .weights import safe_torch_load
@@ -194,13 +198,27 @@ class R2D2Net(nn.Module):
                 fused.append(op)
         self._fused = nn.Sequential(*fused)
 
-    def trunk(self, x: torch.Tensor) -> torch.Tensor:
-        """Normalised RGB (B, 3, H, W) → raw features (B, D, H, W)."""
-        if self._fused is not None:
-            return self._fused(x)
-        for op in self.ops:
+    def trunk(self, x: torch.Tensor, *, upsample: bool = True) -> torch.Tensor:
+        """Normalised RGB (B, 3, H, W) → raw features (B, D, H, W).
+
+        With ``upsample=False`` the final bilinear upsampling of the fast variant (always the
+        last operation) is left out: (B, D, H / u, W / u) for ``u = arch.upsample``.
+        """
+        ops = self._fused if self._fused is not None else self.ops
+        for op in ops:
+            if not upsample and isinstance(op, nn.Upsample):
+                break
             x = op(x)
         return x
+
+    def head_weights(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The heads' 1×1 convolutions as a (3, D) matrix (the two ``clf`` rows, then ``sal``)
+        and a (3,) bias."""
+        dim = self.arch.dim
+        weights = torch.cat([self.clf.weight.reshape(2, dim), self.sal.weight.reshape(1, dim)])
+        assert self.clf.bias is not None and self.sal.bias is not None
+        bias = torch.cat([self.clf.bias, self.sal.bias])
+        return weights.detach().float().contiguous(), bias.detach().float()
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Normalised RGB (B, 3, H, W) → descriptors (B, D, H, W), reliability, repeatability (B, 1, H, W)."""
@@ -281,6 +299,8 @@ class R2D2(TorchExtractor):
         # dilated layers); it is also what cuDNN prefers for these channel counts.
         self.net.to(self.device, memory_format=torch.channels_last)
         self.descriptor_width = self.net.arch.dim
+        weights, bias = self.net.head_weights()
+        self._head_weights = (weights.cpu().numpy(), bias.cpu().numpy())
         self._mean = torch.tensor(_MEAN, device=self.device).view(1, 3, 1, 1)
         self._std = torch.tensor(_STD, device=self.device).view(1, 3, 1, 1)
 
@@ -312,10 +332,12 @@ class R2D2(TorchExtractor):
             if (h, w) != (height, width):
                 image = F.interpolate(rgb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
             # Reduced precision (if asked) for the trunk only: the heads, whose outputs are
-            # thresholded and compared with their neighbours, run in float32.
+            # thresholded and compared with their neighbours, run in float32. The final
+            # upsampling of the fast variant is never materialised for the descriptors, which
+            # are interpolated at the keypoints only, nor on the CPU for the heads.
             with self.autocast():
-                raw = self.net.trunk(image)
-            desc, rel, rep = self.net.heads(raw.float())
+                low = self.net.trunk(image, upsample=False)
+            rel, rep = self._heads(low, m)
             maxima = rep == window_max(rep, 1)
             maxima &= rep >= self.repeatability_threshold
             maxima &= rel >= self.reliability_threshold
@@ -326,7 +348,7 @@ class R2D2(TorchExtractor):
             ky = (y.float() + offset[:, 1] + 0.5) * (height / h) - 0.5
             xy.append(torch.stack([kx, ky], dim=1))
             scores.append(rel[b, 0, y, x] * rep[b, 0, y, x])
-            descs.append(F.normalize(desc[b, :, y, x], p=2, dim=1))
+            descs.append(F.normalize(_sample_upsampled(low, b, y, x, m), p=2, dim=1))
             owner.append(b)
         all_xy, all_scores, all_desc, all_owner = (torch.cat(t) for t in (xy, scores, descs, owner))
         keep = self._merge(all_xy, all_scores, all_owner, batch, height, width)
@@ -337,6 +359,31 @@ class R2D2(TorchExtractor):
             idx = idx[order]
             out.append(to_features(all_xy[idx], all_scores[idx], all_desc[idx]))
         return out
+
+    def _heads(self, low: torch.Tensor, upsample: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Reliability and repeatability (B, 1, H, W) at full resolution from the trunk's map
+        before its final upsampling.
+
+        On the CPU one fused pass in the Rust core (``_core._r2d2_heads``: interpolation,
+        square and the three dot products per pixel, the 128-channel full-resolution map never
+        written); elsewhere torch's upsampling and heads.
+        """
+        if self.device.type == "cpu":
+            if low.dtype not in (torch.float32, torch.bfloat16):
+                low = low.float()
+            nhwc = low.permute(0, 2, 3, 1)
+            if not nhwc.is_contiguous():
+                nhwc = nhwc.contiguous()
+            # bfloat16 goes over as its bit patterns (numpy has no bfloat16), read in place.
+            array = nhwc.view(torch.int16).numpy() if low.dtype == torch.bfloat16 else nhwc.numpy()
+            weights, bias = self._head_weights
+            rel, rep = _core._r2d2_heads(array, weights, bias, upsample)
+            return torch.from_numpy(rel).unsqueeze(1), torch.from_numpy(rep).unsqueeze(1)
+        low = low.float()
+        if upsample > 1:
+            low = F.interpolate(low, scale_factor=upsample, mode="bilinear", align_corners=False)
+        _, rel, rep = self.net.heads(low)
+        return rel, rep
 
     def _merge(
         self, xy: torch.Tensor, scores: torch.Tensor, owner: torch.Tensor, batch: int, height: int, width: int
@@ -364,3 +411,31 @@ class R2D2(TorchExtractor):
             f"R2D2({self.net.arch.name}, weights={str(self.weights)!r}, max_keypoints={self.max_keypoints}, "
             f"scales={self.scales}, device={self.device})"
         )
+
+
+def _upsample_taps(i: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Source indices and weights of output indices ``i`` of a 2× bilinear upsampling of ``n``
+    samples with half-pixel centres (``align_corners=False``): output 2m reads
+    0.25·x[m−1] + 0.75·x[m], output 2m+1 reads 0.75·x[m] + 0.25·x[m+1], with the indices
+    clamped to [0, n) (which reproduces torch's border handling)."""
+    m = i // 2
+    even = i % 2 == 0
+    lo = torch.where(even, m - 1, m).clamp(0, n - 1)
+    hi = torch.where(even, m, m + 1).clamp(0, n - 1)
+    w_lo = torch.where(even, 0.25, 0.75).to(torch.float32)
+    return lo, hi, w_lo, 1.0 - w_lo
+
+
+def _sample_upsampled(
+    low: torch.Tensor, b: torch.Tensor, y: torch.Tensor, x: torch.Tensor, upsample: int
+) -> torch.Tensor:
+    """Rows ``(N, D)`` float32 of ``F.interpolate(low, scale_factor=upsample, mode="bilinear")``
+    at the output pixels ``(b, y, x)``, interpolated from ``low`` (B, D, h, w) at those points
+    only (``upsample`` 1 or 2)."""
+    if upsample == 1:
+        return low[b, :, y, x].float()
+    y0, y1, wy0, wy1 = _upsample_taps(y, low.shape[2])
+    x0, x1, wx0, wx1 = _upsample_taps(x, low.shape[3])
+    top = wx0[:, None] * low[b, :, y0, x0] + wx1[:, None] * low[b, :, y0, x1]
+    bottom = wx0[:, None] * low[b, :, y1, x0] + wx1[:, None] * low[b, :, y1, x1]
+    return wy0[:, None] * top + wy1[:, None] * bottom
