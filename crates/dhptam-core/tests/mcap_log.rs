@@ -1,7 +1,7 @@
 //! MCAP logs: round trips, time-range reads of events, and errors on damaged files.
 
 use dhptam_core::io::mcap::{
-    CameraCalibration, LogCompression, LogOptions, LogReader, LogWriter, PointCloud, PoseInFrame,
+    CameraCalibration, CompressedImage, LogCompression, LogOptions, LogReader, LogWriter, PointCloud, PoseInFrame,
     RawImage, SchemaKind,
 };
 use dhptam_core::Error;
@@ -215,4 +215,70 @@ fn a_writer_dropped_unfinished_leaves_nothing() {
         .filter(|e| e.file_name().to_string_lossy().starts_with("dropped.mcap"))
         .collect();
     assert!(leftovers.is_empty());
+}
+
+#[test]
+fn compressed_images_round_trip_beside_raw_ones() {
+    let path = tmp("compressed.mcap");
+    let mut w = LogWriter::create(&path, LogOptions::default()).unwrap();
+    let frames: Vec<CompressedImage> = (0..3)
+        .map(|k| CompressedImage {
+            t_ns: 10 + k,
+            frame_id: "frame_left".into(),
+            data: vec![k as u8; 5 + k as usize],
+            format: "png".into(),
+        })
+        .collect();
+    for f in &frames {
+        w.add_compressed_image("/frames/left", f).unwrap();
+    }
+    let empty = CompressedImage {
+        format: "png".into(),
+        ..CompressedImage::default()
+    };
+    let err = w.add_compressed_image("/frames/left", &empty).unwrap_err();
+    assert!(err.to_string().contains("non-empty data"), "{err}");
+    w.finish().unwrap();
+    let r = LogReader::open(&path).unwrap();
+    assert_eq!(r.compressed_images("/frames/left", 0..3).unwrap(), frames);
+    assert_eq!(r.compressed_images("/frames/left", 2..9).unwrap(), frames[2..]);
+    assert_eq!(
+        r.log_times("/frames/left", SchemaKind::CompressedImage)
+            .unwrap(),
+        vec![10, 11, 12]
+    );
+    // A compressed channel is not a raw one, and the error says which it is.
+    let err = r.images("/frames/left", 0..1).unwrap_err();
+    assert!(
+        err.to_string().contains("foxglove.CompressedImage"),
+        "{err}"
+    );
+    assert_eq!(format_field(err).1, "/frames/left");
+}
+
+#[test]
+fn a_chunk_with_an_unknown_compression_names_the_file_and_the_channel() {
+    let path = tmp("lz4.mcap");
+    write_log(&path, LogCompression::Lz4);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Rename the compression of every chunk (and its index entry) to one no reader knows:
+    // the string is stored as a u32 length and the name.
+    let needle = b"\x03\x00\x00\x00lz4";
+    let mut renamed = 0;
+    for i in 0..bytes.len() - needle.len() {
+        if &bytes[i..i + needle.len()] == needle {
+            bytes[i + 6] = b'9';
+            renamed += 1;
+        }
+    }
+    assert!(renamed >= 2, "{renamed}");
+    let bad = tmp("unknown-compression.mcap");
+    std::fs::write(&bad, &bytes).unwrap();
+    // Opening reads the last event batch, so the event channel is named.
+    let err = LogReader::open(&bad).err().unwrap();
+    let message = err.to_string();
+    let (p, field) = format_field(err);
+    assert!(p.ends_with("unknown-compression.mcap"), "{p}");
+    assert_eq!(field, "/events/left");
+    assert!(message.contains("lz9"), "{message}");
 }

@@ -10,7 +10,7 @@ use memmap2::Mmap;
 use rayon::prelude::*;
 
 use super::schemas::{
-    decode_event_batch, CameraCalibration, EventColumns, PointCloud, PoseInFrame, RawImage,
+    decode_event_batch, CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame, RawImage,
     SchemaKind,
 };
 use super::{mcap_error, BATCH_EVENTS_KEY, MESSAGE_ENCODING};
@@ -326,6 +326,18 @@ impl LogReader {
         let info = self.topic(topic, SchemaKind::RawImage)?;
         self.read_messages(info, range.clone(), |k, data| {
             self.decode(topic, range.start + k, RawImage::decode(data))
+        })
+    }
+
+    /// Images `range` of a `foxglove.CompressedImage` channel (still compressed).
+    pub fn compressed_images(
+        &self,
+        topic: &str,
+        range: std::ops::Range<usize>,
+    ) -> Result<Vec<CompressedImage>> {
+        let info = self.topic(topic, SchemaKind::CompressedImage)?;
+        self.read_messages(info, range.clone(), |k, data| {
+            self.decode(topic, range.start + k, CompressedImage::decode(data))
         })
     }
 
