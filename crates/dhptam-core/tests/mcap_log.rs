@@ -1,8 +1,8 @@
 //! MCAP logs: round trips, time-range reads of events, and errors on damaged files.
 
 use dhptam_core::io::mcap::{
-    CameraCalibration, CompressedImage, LogCompression, LogOptions, LogReader, LogWriter, PointCloud, PoseInFrame,
-    RawImage, SchemaKind,
+    CameraCalibration, CompressedImage, LogCompression, LogOptions, LogReader, LogWriter,
+    PointCloud, PoseInFrame, RawImage, SchemaKind,
 };
 use dhptam_core::Error;
 
@@ -241,7 +241,10 @@ fn compressed_images_round_trip_beside_raw_ones() {
     w.finish().unwrap();
     let r = LogReader::open(&path).unwrap();
     assert_eq!(r.compressed_images("/frames/left", 0..3).unwrap(), frames);
-    assert_eq!(r.compressed_images("/frames/left", 2..9).unwrap(), frames[2..]);
+    assert_eq!(
+        r.compressed_images("/frames/left", 2..9).unwrap(),
+        frames[2..]
+    );
     assert_eq!(
         r.log_times("/frames/left", SchemaKind::CompressedImage)
             .unwrap(),
@@ -281,4 +284,44 @@ fn a_chunk_with_an_unknown_compression_names_the_file_and_the_channel() {
     assert!(p.ends_with("unknown-compression.mcap"), "{p}");
     assert_eq!(field, "/events/left");
     assert!(message.contains("lz9"), "{message}");
+}
+
+/// Inputs the `mcap` fuzz target once crashed on (`fuzz/regressions/mcap/`): each must open
+/// with an error or read consistently.
+#[test]
+fn fuzz_regressions_are_refused_or_read_consistently() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/mcap");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        seen += 1;
+        let reader = match LogReader::open(&path) {
+            Err(Error::Format { .. }) => continue,
+            Err(other) => panic!("{}: unexpected error kind {other}", path.display()),
+            Ok(reader) => reader,
+        };
+        for (topic, info) in reader.topics() {
+            if info.schema_name != SchemaKind::EventBatch.name() {
+                continue;
+            }
+            let count = reader.event_count(topic).unwrap();
+            let (t0, t1) = reader.event_time_range(topic).unwrap();
+            assert!(count == 0 || t0 < t1, "{}: [{t0}, {t1})", path.display());
+        }
+    }
+    assert!(seen >= 1, "no regression inputs in {}", dir.display());
+}
+
+#[test]
+fn event_batches_whose_log_time_is_not_their_first_event_are_refused() {
+    // The first regression input: a batch logged at 16 057 320 ns whose events end at 1 040 ns.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fuzz/regressions/mcap/batch-log-time-after-its-events.mcap");
+    let err = LogReader::open(&path).err().expect("a damaged log");
+    let message = err.to_string();
+    assert!(message.contains("/events/left"), "{message}");
+    assert!(
+        message.contains("logged at") && message.contains("ns"),
+        "{message}"
+    );
 }

@@ -8,8 +8,8 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use dhptam_core::io::mcap::{
-    CameraCalibration, CompressedImage, LogCompression, LogOptions, LogReader, LogWriter, PointCloud, PoseInFrame,
-    RawImage, SchemaKind,
+    CameraCalibration, CompressedImage, LogCompression, LogOptions, LogReader, LogWriter,
+    PointCloud, PoseInFrame, RawImage, SchemaKind,
 };
 use numpy::ndarray::{Array2, Array3};
 use numpy::{
@@ -357,7 +357,10 @@ impl PyMcapReader {
         start: usize,
         stop: usize,
     ) -> PyResult<Vec<(i64, String, Bound<'py, PyAny>)>> {
-        let images = py.detach_guarded("McapReader.images", || self.inner.images(topic, start..stop))?
+        let images = py
+            .detach_guarded("McapReader.images", || {
+                self.inner.images(topic, start..stop)
+            })?
             .py()?;
         images
             .into_iter()
@@ -410,7 +413,10 @@ impl PyMcapReader {
         start: usize,
         stop: usize,
     ) -> PyResult<Vec<(i64, String, String, Bound<'py, PyBytes>)>> {
-        let images = py.detach_guarded("McapReader.compressed_images", || self.inner.compressed_images(topic, start..stop))?
+        let images = py
+            .detach_guarded("McapReader.compressed_images", || {
+                self.inner.compressed_images(topic, start..stop)
+            })?
             .py()?;
         Ok(images
             .into_iter()
@@ -428,7 +434,8 @@ impl PyMcapReader {
         Bound<'py, PyArray2<f64>>,
         Vec<String>,
     )> {
-        let poses = py.detach_guarded("McapReader.poses", || self.inner.poses(topic))?
+        let poses = py
+            .detach_guarded("McapReader.poses", || self.inner.poses(topic))?
             .py()?;
         let t: Vec<i64> = poses.iter().map(|m| m.t_ns).collect();
         let mut rows = Array2::<f64>::zeros((poses.len(), 7));
@@ -447,7 +454,8 @@ impl PyMcapReader {
     /// Every CameraCalibration message as a dict (`t_ns`, `frame_id`, `width`, `height`,
     /// `distortion_model`, `D`, `K`, `R`, `P`).
     fn calibrations<'py>(&self, py: Python<'py>, topic: &str) -> PyResult<Vec<Bound<'py, PyDict>>> {
-        let messages = py.detach_guarded("McapReader.calibrations", || self.inner.calibrations(topic))?
+        let messages = py
+            .detach_guarded("McapReader.calibrations", || self.inner.calibrations(topic))?
             .py()?;
         messages
             .into_iter()
@@ -473,7 +481,8 @@ impl PyMcapReader {
         py: Python<'py>,
         topic: &str,
     ) -> PyResult<Vec<(i64, String, Bound<'py, PyArray2<f32>>)>> {
-        let clouds = py.detach_guarded("McapReader.point_clouds", || self.inner.point_clouds(topic))?
+        let clouds = py
+            .detach_guarded("McapReader.point_clouds", || self.inner.point_clouds(topic))?
             .py()?;
         Ok(clouds
             .into_iter()
@@ -506,8 +515,10 @@ impl PyMcapReader {
         t0_ns: i64,
         t1_ns: i64,
     ) -> PyResult<(usize, usize)> {
-        py.detach_guarded("McapReader.event_index_range", || self.inner.event_index_range(topic, t0_ns, t1_ns))?
-            .py()
+        py.detach_guarded("McapReader.event_index_range", || {
+            self.inner.event_index_range(topic, t0_ns, t1_ns)
+        })?
+        .py()
     }
 
     /// Events `i0 .. i1 - 1` as `(x uint16, y uint16, t_ns int64, p int8)`.
@@ -523,7 +534,10 @@ impl PyMcapReader {
         Bound<'py, PyArray1<i64>>,
         Bound<'py, PyArray1<i8>>,
     )> {
-        let e = py.detach_guarded("McapReader.event_slice", || self.inner.event_slice(topic, i0, i1))?
+        let e = py
+            .detach_guarded("McapReader.event_slice", || {
+                self.inner.event_slice(topic, i0, i1)
+            })?
             .py()?;
         Ok((
             e.x.into_pyarray(py),

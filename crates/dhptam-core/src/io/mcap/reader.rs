@@ -5,18 +5,24 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use ::mcap::records::ChunkIndex;
+use ::mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use ::mcap::Summary;
 use memmap2::Mmap;
 use rayon::prelude::*;
 
 use super::schemas::{
-    decode_event_batch, CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame, RawImage,
-    SchemaKind,
+    decode_event_batch, CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame,
+    RawImage, SchemaKind,
 };
 use super::{mcap_error, BATCH_EVENTS_KEY, MESSAGE_ENCODING};
 use crate::error::{Error, Result};
 
 const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
+
+/// Longest record a chunk may hold, bytes (256 MiB): far above any dhptam message (a 4K RGB
+/// frame is 25 MB, an event batch 426 KiB), and the most a damaged length field can make the
+/// reader allocate.
+const MAX_RECORD_BYTES: usize = 256 << 20;
 
 /// Where one message lies: its chunk (index into the reader's chunk list) and log time.
 #[derive(Debug, Clone, Copy)]
@@ -272,25 +278,21 @@ impl LogReader {
             .map(|&(chunk, k0, first_rank, wanted)| {
                 // A chunk streams its records in offset order, so the channel's messages come
                 // by rank.
-                let stream = self
-                    .summary
-                    .stream_chunk(&self.map, &self.chunks[chunk])
-                    .map_err(|e| mcap_error(&self.path, &info.topic, e))?;
                 let mut out = Vec::with_capacity(wanted);
                 let mut rank = 0usize;
-                for message in stream {
-                    let message = message.map_err(|e| mcap_error(&self.path, &info.topic, e))?;
-                    if message.channel.id != info.channel_id {
-                        continue;
+                self.for_each_message(&self.chunks[chunk], &info.topic, |channel, data| {
+                    if channel != info.channel_id {
+                        return Ok(true);
                     }
                     if rank >= first_rank {
-                        out.push(f(k0 + rank - first_rank, &message.data)?);
+                        out.push(f(k0 + rank - first_rank, data)?);
                         if out.len() == wanted {
-                            break;
+                            return Ok(false);
                         }
                     }
                     rank += 1;
-                }
+                    Ok(true)
+                })?;
                 if out.len() != wanted {
                     return Err(format_error(
                         &self.path,
@@ -305,6 +307,75 @@ impl LogReader {
             })
             .collect::<Result<_>>()?;
         Ok(per_chunk.into_iter().flatten().collect())
+    }
+
+    /// Calls `visit(channel id, message data)` for the messages of a chunk in file order until
+    /// it returns `Ok(false)`.
+    ///
+    /// The chunk is streamed through the `mcap` crate's sans-io reader with a record length
+    /// limit: no record inside a chunk can be longer than the chunk's uncompressed size, and a
+    /// damaged length field must give an error, not an allocation of that size (the crate's
+    /// `Summary::stream_chunk` sets no limit; the `mcap` fuzz target found the abort).
+    fn for_each_message(
+        &self,
+        chunk: &ChunkIndex,
+        topic: &str,
+        mut visit: impl FnMut(u16, &[u8]) -> Result<bool>,
+    ) -> Result<()> {
+        let start = usize::try_from(chunk.chunk_start_offset).ok();
+        let end = chunk
+            .chunk_start_offset
+            .checked_add(chunk.chunk_length)
+            .and_then(|e| usize::try_from(e).ok());
+        let bytes = match (start, end) {
+            (Some(a), Some(b)) if a < b && b <= self.map.len() => &self.map[a..b],
+            _ => {
+                return Err(format_error(
+                    &self.path,
+                    topic,
+                    format!(
+                        "the index places a chunk at bytes {}..+{} of a {}-byte file",
+                        chunk.chunk_start_offset,
+                        chunk.chunk_length,
+                        self.map.len()
+                    ),
+                ))
+            }
+        };
+        let inner_limit = usize::try_from(chunk.uncompressed_size)
+            .unwrap_or(usize::MAX)
+            .min(MAX_RECORD_BYTES);
+        let options = LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_validate_chunk_crcs(true)
+            .with_record_length_limit(inner_limit.max(bytes.len()));
+        let mut reader = LinearReader::new_with_options(options);
+        let mut rest = bytes;
+        while let Some(event) = reader.next_event() {
+            match event.map_err(|e| mcap_error(&self.path, topic, e))? {
+                LinearReadEvent::ReadRequest(need) => {
+                    let n = need.min(rest.len());
+                    reader.insert(n).copy_from_slice(&rest[..n]);
+                    reader.notify_read(n);
+                    rest = &rest[n..];
+                }
+                LinearReadEvent::Record { data, opcode } => {
+                    if opcode != ::mcap::records::op::MESSAGE {
+                        continue;
+                    }
+                    if let ::mcap::records::Record::Message { header, data } =
+                        ::mcap::parse_record(opcode, data)
+                            .map_err(|e| mcap_error(&self.path, topic, e))?
+                    {
+                        if !visit(header.channel_id, &data)? {
+                            return Ok(());
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     fn decode<T>(&self, topic: &str, k: usize, r: std::result::Result<T, String>) -> Result<T> {
@@ -390,6 +461,23 @@ impl LogReader {
                 t_last_ns: 0,
             });
         }
+        // Batches are found by a binary search over their log times: those must not decrease.
+        if let Some(b) = info
+            .locations
+            .windows(2)
+            .position(|w| w[1].log_time < w[0].log_time)
+        {
+            return Err(format_error(
+                &self.path,
+                topic,
+                format!(
+                    "event batch {} is logged at {} ns, before batch {b} ({} ns)",
+                    b + 1,
+                    info.locations[b + 1].log_time,
+                    info.locations[b].log_time
+                ),
+            ));
+        }
         let last = self.event_batches(topic, info, batch_events, n - 1..n)?;
         let last = last.into_iter().next().unwrap_or_default();
         let count = (n - 1) * batch_events + last.len();
@@ -433,6 +521,32 @@ impl LogReader {
                         } else {
                             format!("1..={batch_events}")
                         }
+                    ),
+                ));
+            }
+            // The index's log time is the batch's first event time (what the time searches
+            // rely on), and times never decrease inside a batch.
+            let log_time = info.locations[b].log_time;
+            let t = &batch.events.t_ns;
+            if u64::try_from(t[0]).ok() != Some(log_time) {
+                return Err(format_error(
+                    &self.path,
+                    topic,
+                    format!(
+                        "event batch {b} is logged at {log_time} ns but its first event is at {} ns",
+                        t[0]
+                    ),
+                ));
+            }
+            if let Some(k) = t.windows(2).position(|w| w[1] < w[0]) {
+                return Err(format_error(
+                    &self.path,
+                    topic,
+                    format!(
+                        "event batch {b}: times decrease at event {} ({} ns after {} ns)",
+                        b * batch_events + k + 1,
+                        t[k + 1],
+                        t[k]
                     ),
                 ));
             }

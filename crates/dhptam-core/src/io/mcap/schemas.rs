@@ -229,7 +229,13 @@ const POINT_CLOUD: FileDef = proto_file!(
         field("frame_id", 2, Ty::String),
         sub("pose", 3, POSE_TYPE),
         field("point_stride", 4, Ty::Fixed32),
-        def("fields", 5, Ty::Message, true, ".foxglove.PackedElementField"),
+        def(
+            "fields",
+            5,
+            Ty::Message,
+            true,
+            ".foxglove.PackedElementField"
+        ),
         field("data", 6, Ty::Bytes),
     ]
 );

@@ -9,8 +9,8 @@ use ::mcap::records::{MessageHeader, Metadata};
 use ::mcap::{Compression, WriteOptions, Writer};
 
 use super::schemas::{
-    encode_event_batch, CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame, RawImage,
-    SchemaKind,
+    encode_event_batch, CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame,
+    RawImage, SchemaKind,
 };
 use super::{mcap_error, BATCH_EVENTS_KEY, MESSAGE_ENCODING, PROFILE};
 use crate::error::{Error, Result};
