@@ -313,6 +313,51 @@ fn fuzz_regressions_are_refused_or_read_consistently() {
 }
 
 #[test]
+fn a_record_longer_than_its_chunk_is_an_error_not_an_allocation_or_a_panic() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/mcap");
+    // A compressed chunk whose message claims 2^56 bytes, and an uncompressed one whose record
+    // runs past the chunk's data.
+    for (name, expected) in [
+        ("record-length-beyond-its-chunk.mcap", "record"),
+        (
+            "record-past-its-uncompressed-chunk.mcap",
+            "past the chunk's end",
+        ),
+        (
+            "summary-chunk-record-past-its-end.mcap",
+            "past the chunk's end",
+        ),
+    ] {
+        let path = dir.join(name);
+        let message = match LogReader::open(&path) {
+            Err(err) => err.to_string(),
+            // Some channel must fail to read, with an error and not an allocation or a panic.
+            Ok(reader) => reader
+                .topics()
+                .iter()
+                .filter_map(|(topic, info)| {
+                    let n = info.message_count;
+                    match SchemaKind::from_name(&info.schema_name)? {
+                        SchemaKind::EventBatch => reader.event_slice(topic, 0, usize::MAX).err(),
+                        SchemaKind::RawImage => reader.images(topic, 0..n).err(),
+                        SchemaKind::CompressedImage => reader.compressed_images(topic, 0..n).err(),
+                        SchemaKind::CameraCalibration => reader.calibrations(topic).err(),
+                        SchemaKind::PoseInFrame => reader.poses(topic).err(),
+                        SchemaKind::PointCloud => reader.point_clouds(topic).err(),
+                    }
+                })
+                .map(|e| e.to_string())
+                .find(|m| m.to_lowercase().contains(expected))
+                .unwrap_or_default(),
+        };
+        assert!(
+            message.to_lowercase().contains(expected) && message.contains(name),
+            "{name}: {message:?}"
+        );
+    }
+}
+
+#[test]
 fn event_batches_whose_log_time_is_not_their_first_event_are_refused() {
     // The first regression input: a batch logged at 16 057 320 ns whose events end at 1 040 ns.
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -85,6 +85,85 @@ fn format_error(path: &Path, field: &str, message: impl Into<String>) -> Error {
     }
 }
 
+/// For a chunk record stored without compression (`bytes`: opcode, length, chunk), the first
+/// record inside it whose length runs past the chunk's data, described; `None` when every
+/// record fits, or when the chunk is compressed or its header is malformed (the `mcap` crate
+/// reports those). The crate subtracts such a length from the bytes left without a check (an
+/// overflow panic in debug builds, a wrap-around in release ones), so it is caught here first.
+fn uncompressed_chunk_overrun(bytes: &[u8]) -> Option<String> {
+    let u32_at = |at: usize| -> Option<u32> {
+        Some(u32::from_le_bytes(bytes.get(at..at + 4)?.try_into().ok()?))
+    };
+    let u64_at = |at: usize| -> Option<u64> {
+        Some(u64::from_le_bytes(bytes.get(at..at + 8)?.try_into().ok()?))
+    };
+    // opcode (1) + record length (8), then start time, end time, uncompressed size (8 each),
+    // uncompressed CRC (4), the compression string (u32 length + bytes), compressed size (8).
+    let compression_len = u32_at(9 + 24 + 4)? as usize;
+    if compression_len != 0 {
+        return None;
+    }
+    let compressed_size = u64_at(9 + 24 + 4 + 4)?;
+    let data_start: usize = 9 + 24 + 4 + 4 + 8;
+    let data_end = data_start.checked_add(usize::try_from(compressed_size).ok()?)?;
+    let data = bytes.get(data_start..data_end)?;
+    let mut at = 0usize;
+    while at < data.len() {
+        let len = data
+            .get(at + 1..at + 9)
+            .and_then(|b| b.try_into().ok())
+            .map(u64::from_le_bytes);
+        let fits = len
+            .and_then(|len| usize::try_from(len).ok())
+            .and_then(|len| len.checked_add(9))
+            .filter(|&total| total <= data.len() - at);
+        match fits {
+            Some(total) => at += total,
+            None => {
+                return Some(format!(
+                    "the record at byte {at} of its {} data bytes is {} bytes long, past the \
+                     chunk's end",
+                    data.len(),
+                    len.map_or_else(|| "an unreadable number of".to_string(), |l| l.to_string())
+                ))
+            }
+        }
+    }
+    None
+}
+
+/// The same check as [`uncompressed_chunk_overrun`] for the chunk records the `mcap` crate's
+/// summary reader would meet: it reads every record from the footer's `summary_start` to the
+/// footer, so a damaged `summary_start` pointing into the data section hands it chunks.
+fn summary_chunk_overrun(map: &[u8]) -> Option<String> {
+    // The footer record (opcode, length 20, summary_start, summary_offset_start, CRC) ends
+    // just before the closing magic.
+    let footer = map.len().checked_sub(8 + 9 + 20)?;
+    let summary_start = u64::from_le_bytes(map.get(footer + 9..footer + 17)?.try_into().ok()?);
+    let mut at = usize::try_from(summary_start).ok()?;
+    if at == 0 {
+        return None;
+    }
+    while at < footer {
+        let opcode = *map.get(at)?;
+        let len = usize::try_from(u64::from_le_bytes(
+            map.get(at + 1..at + 9)?.try_into().ok()?,
+        ))
+        .ok()?;
+        let end = at.checked_add(9)?.checked_add(len)?;
+        let record = map.get(at..end)?;
+        if opcode == ::mcap::records::op::CHUNK {
+            if let Some(message) = uncompressed_chunk_overrun(record) {
+                return Some(format!(
+                    "chunk record at byte {at} of the summary section: {message}"
+                ));
+            }
+        }
+        at = end;
+    }
+    None
+}
+
 impl LogReader {
     /// Opens a log and reads its summary and indexes.
     pub fn open(path: impl AsRef<Path>) -> Result<Self> {
@@ -114,6 +193,9 @@ impl LogReader {
                 "magic",
                 "the file does not end with the MCAP magic bytes (truncated or still being written)",
             ));
+        }
+        if let Some(message) = summary_chunk_overrun(&map) {
+            return Err(format_error(&path, "summary", message));
         }
         let summary = Summary::read(&map)
             .map_err(|e| mcap_error(&path, "summary", e))?
@@ -342,6 +424,13 @@ impl LogReader {
                 ))
             }
         };
+        if let Some(message) = uncompressed_chunk_overrun(bytes) {
+            return Err(format_error(
+                &self.path,
+                topic,
+                format!("chunk at byte {}: {message}", chunk.chunk_start_offset),
+            ));
+        }
         let inner_limit = usize::try_from(chunk.uncompressed_size)
             .unwrap_or(usize::MAX)
             .min(MAX_RECORD_BYTES);
