@@ -318,7 +318,7 @@ fn a_record_longer_than_its_chunk_is_an_error_not_an_allocation_or_a_panic() {
     // A compressed chunk whose message claims 2^56 bytes, and an uncompressed one whose record
     // runs past the chunk's data.
     for (name, expected) in [
-        ("record-length-beyond-its-chunk.mcap", "record"),
+        ("record-length-beyond-its-chunk.mcap", "exceeds limit"),
         (
             "record-past-its-uncompressed-chunk.mcap",
             "past the chunk's end",
