@@ -496,3 +496,26 @@ def test_commands_report_bad_input_with_exit_code_2(
     code, err = _cli([a.format(d=tmp_path) for a in argv], capsys)
     assert code == 2, err
     assert names in err, err
+
+
+# -- panics never cross the Python boundary -------------------------------------------------------
+
+
+def test_a_core_panic_becomes_internal_error_and_the_process_lives_on() -> None:
+    """The binding's panic guard (``detach_guarded``) on a real Rust panic: the test-only
+    ``_core._testing_panic`` panics inside it with the given message."""
+    from dhptam import _core
+    from dhptam.errors import DhptamError, InternalError
+
+    for attempt in range(2):  # a second panic after the first: nothing was left poisoned
+        with pytest.raises(InternalError) as err:
+            _core._testing_panic(f"deliberate panic #{attempt} for the test")
+        message = str(err.value)
+        assert f"deliberate panic #{attempt} for the test" in message
+        assert "internal error in _testing_panic" in message and "dhptam bug" in message
+    # An ordinary `except Exception` catches it (PyO3's PanicException is a BaseException).
+    with pytest.raises(Exception) as caught:  # noqa: PT011 (the point of the test)
+        _core._testing_panic("caught as Exception")
+    assert isinstance(caught.value, DhptamError) and isinstance(caught.value, RuntimeError)
+    # The interpreter and the extension still work: a core call after the panics succeeds.
+    assert _core.thread_count() >= 1

@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+import yaml
 from dataset_layouts import (
     BAD_EVENT,
     BODY_FROM_CAM0,
@@ -152,6 +153,132 @@ def test_vector_event_file_with_wrong_layout_names_file_and_field(vector) -> Non
     assert err.value.path == str(path) and err.value.field == "events/t"
 
 
+def _flat(m: np.ndarray) -> str:
+    """A 4x4 matrix as one flat row-major YAML list, as the VECtor release writes them."""
+    return "[" + ", ".join(repr(float(v)) for v in np.asarray(m).ravel()) + "]"
+
+
+def _as_release_layout(vector) -> Path:  # type: ignore[no-untyped-def]
+    """Rearrange the fixture into the VECtor release's layout (names, flat matrices, calibration
+    in ``0_calib/`` beside the sequence folders, frames named by time); returns ``0_calib``."""
+    calib = vector.folder.parent / "0_calib"
+    shutil.move(vector.folder / "calibration", calib)
+    for old in calib.glob("*joint*extrinsic*.yaml"):
+        old.unlink()
+    (calib / "camera_body_extrinsic_results.yaml").unlink()
+    small = "".join(f"cam{n}:\n  T_cam0_cam{n}: {_flat(CAM0_FROM[n])}\n" for n in range(4))
+    (calib / "small_scale_joint_camera_extrinsic_results.yaml").write_text(small)
+    # The large-scale rig is another set-up: cam1 sits elsewhere.
+    large = small.replace(_flat(CAM0_FROM[1]), _flat(CAM0_FROM[3]))
+    (calib / "large_scale_joint_camera_extrinsic_results.yaml").write_text(large)
+    (calib / "camera_mocap_extrinsic_results1.yaml").write_text(
+        "cam0:\n"
+        f"  T_body_cam: {_flat(BODY_FROM_CAM0)}\n"
+        f"  T_cam_body: {_flat(np.linalg.inv(BODY_FROM_CAM0))}\n"
+    )
+    for side in ("left", "right"):
+        folder = vector.folder / f"{vector.name}.synced.{side}_camera"
+        for k, start in enumerate(vector.frame_start_s):
+            (folder / f"{k:06d}.png").rename(folder / f"{start}.png")
+    return calib
+
+
+def test_vector_release_layout_and_file_names(vector) -> None:  # type: ignore[no-untyped-def]
+    calib = _as_release_layout(vector)
+    # Two joint extrinsics files in 0_calib: the error names both and the way to choose.
+    with pytest.raises(FileError, match=r"small_scale_joint.*joint_extrinsics=") as err:
+        load_vector(vector.folder)
+    assert err.value.path == str(calib) and "large_scale_joint" in str(err.value)
+    small = calib / "small_scale_joint_camera_extrinsic_results.yaml"
+    with load_vector(vector.folder, joint_extrinsics=small) as seq:
+        np.testing.assert_allclose(
+            seq.calibration.cam_from_cam("frame_left", "frame_right").matrix(), CAM0_FROM[1], atol=1e-9
+        )
+        # Frames named by their time come in time order.
+        np.testing.assert_array_equal(seq.frames[0].left, vector.images["left"][0])
+        np.testing.assert_array_equal(seq.frames[9].right, vector.images["right"][9])
+        gt = seq.ground_truth
+        assert gt is not None
+        assert_poses(gt.world_from_cam, [m @ BODY_FROM_CAM0 for m in vector.world_from_body])
+    # Only T_cam_body (body_from_cam0's inverse) in the mocap file gives the same chain.
+    (calib / "large_scale_joint_camera_extrinsic_results.yaml").unlink()
+    mocap = calib / "camera_mocap_extrinsic_results1.yaml"
+    mocap.write_text(f"cam0:\n  T_cam_body: {_flat(np.linalg.inv(BODY_FROM_CAM0))}\n")
+    with load_vector(vector.folder) as seq:
+        assert seq.ground_truth is not None
+        assert_poses(seq.ground_truth.world_from_cam, [m @ BODY_FROM_CAM0 for m in vector.world_from_body])
+    # Missing calibration entries name the file and the field.
+    mocap.write_text("cam0:\n  T_cam_imu: [1, 0]\n")
+    with pytest.raises(ParseError, match="neither T_body_cam nor T_cam_body") as err:
+        load_vector(vector.folder)
+    assert err.value.path == str(mocap) and err.value.field == "cam0.T_body_cam"
+    mocap.write_text(f"cam0:\n  T_body_cam: {_flat(BODY_FROM_CAM0)[:-6]}]\n")  # 15 numbers
+    with pytest.raises(ParseError, match=r"cam0\.T_body_cam must be a 4x4 matrix") as err:
+        load_vector(vector.folder)
+    assert err.value.field == "cam0.T_body_cam"
+    (calib / "camera_mocap_extrinsic_results2.yaml").write_text(mocap.read_text())
+    with pytest.raises(FileError, match=r"several camera-body calibrations .*results1.*results2") as err:
+        load_vector(vector.folder)
+    assert err.value.field == "T_body_cam0"
+
+
+@pytest.mark.parametrize(
+    ("key", "field"),
+    [
+        ("image_width", "image_width"),
+        ("camera_matrix", "camera_matrix"),
+        ("distortion_model", "distortion_model"),
+        ("distortion_coefficients", "distortion_coefficients"),
+    ],
+)
+def test_vector_missing_intrinsics_entries_name_file_and_field(vector, key: str, field: str) -> None:  # type: ignore[no-untyped-def]
+    path = vector.folder / "calibration" / "right_event_camera_intrinsic_results.yaml"
+    doc = yaml.safe_load(path.read_text())
+    del doc[key]
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ParseError, match=key) as err:
+        load_vector(vector.folder)
+    assert err.value.path == str(path) and err.value.field == field
+
+
+def test_an_unavailable_hdf5_filter_names_the_file_the_dataset_and_the_filter(vector) -> None:  # type: ignore[no-untyped-def]
+    """VECtor's events are zstd-compressed: without the zstd plugin the reader says so up front
+    (file, dataset, filter) instead of failing on the first window with HDF5's message."""
+    import hdf5plugin
+
+    path = vector.folder / f"{vector.name}.synced.left_event.hdf5"
+    h5py.h5z.unregister_filter(hdf5plugin.ZSTD_ID)
+    try:
+        assert not h5py.h5z.filter_avail(hdf5plugin.ZSTD_ID)
+        with pytest.raises(FileError, match=r"HDF5 filter 32015 \(.*zstd.*\), which is not available") as err:
+            load_vector(vector.folder)
+        assert err.value.path == str(path) and err.value.field == "events/x"
+        with pytest.raises(FileError, match="filter 32015") as err:
+            EventSource(path)
+        assert err.value.field == "events/x"
+    finally:
+        hdf5plugin.register("zstd", force=True)
+    with EventSource(path) as source:
+        assert len(source) == len(vector.events["left"]["t"])
+
+
+def test_mvsec_events_with_an_unavailable_filter_are_refused(
+    tmp_path: Path, rng: np.random.Generator
+) -> None:
+    import hdf5plugin
+
+    truth = write_mvsec(tmp_path, rng)  # events Blosc-compressed, as the fixture writes them
+    h5py.h5z.unregister_filter(hdf5plugin.BLOSC_ID)
+    try:
+        with pytest.raises(FileError, match=f"filter {hdf5plugin.BLOSC_ID}") as err:
+            load_mvsec(tmp_path)
+        assert err.value.path == str(truth.data) and err.value.field == "davis/left/events"
+    finally:
+        hdf5plugin.register("blosc", force=True)
+    with load_mvsec(tmp_path) as seq:
+        assert len(seq.events["left"]) == len(truth.events["left"])
+
+
 # -- VECtor bag -----------------------------------------------------------------------------------------
 
 
@@ -206,9 +333,9 @@ def test_unindexed_bag_is_refused_with_the_file_named(vector, tmp_path: Path) ->
     at = raw.index(b"index_pos=") + len(b"index_pos=")
     raw[at : at + 8] = bytes(8)  # what a recording cut before `rosbag record` wrote its index looks like
     bag.write_bytes(bytes(raw))
-    with pytest.raises(FileError, match="not indexed") as err:
+    with pytest.raises(FileError, match=r"not indexed.*rosbag reindex") as err:
         load_vector_bag(bag, calibration=vector.folder / "calibration")
-    assert err.value.path == str(bag)
+    assert err.value.path == str(bag) and err.value.field == "index"
 
 
 # -- MVSEC ------------------------------------------------------------------------------------------------

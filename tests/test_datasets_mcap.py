@@ -279,12 +279,13 @@ def test_run_record_holds_the_inputs_and_outputs_of_the_run(sim_desk_run: Path, 
 
     out, record = tmp_path / "run", tmp_path / "run.mcap"
     args = ["run", "--sequence", str(sim_desk_run), "--out", str(out), "--max-frames", "4", "-q", "--sync"]
-    assert main([*args, "--record", str(record)]) == 0
+    assert main([*args, "--record", str(record), "--record-frames", "png"]) == 0
     t_tum, _ = read_tum(out / "trajectory_frame_left.tum")
     reader = McapReader(record)
     topics = reader.topics()
     assert topics["/slam/world_from_frame_left"]["schema_name"] == "foxglove.PoseInFrame"
     assert topics["/slam/map"]["schema_name"] == "foxglove.PointCloud"
+    assert topics["/frames/left"]["schema_name"] == "foxglove.CompressedImage"  # --record-frames png
     t_rec, _, _ = reader.poses("/slam/world_from_frame_left")
     assert len(t_rec) == len(t_tum) == 4
     ((_, frame, points),) = reader.point_clouds("/slam/map")
@@ -300,3 +301,154 @@ def test_run_record_holds_the_inputs_and_outputs_of_the_run(sim_desk_run: Path, 
             got = back.events[side].slice(0, len(back.events[side]))
             np.testing.assert_array_equal(got.t_ns, expected.t_ns)
             np.testing.assert_array_equal(got.x, expected.x)
+
+
+# -- frames as PNG (foxglove.CompressedImage) ---------------------------------------------------
+
+
+def test_png_frames_round_trip_and_decode_as_foxglove_compressed_images(tmp_path: Path) -> None:
+    import cv2
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+    from google.protobuf import descriptor_pb2, descriptor_pool
+
+    with load_tumvie(_hand_made(tmp_path)) as seq:
+        raw = write_sequence(seq, tmp_path / "raw.mcap", progress=False)
+        png = write_sequence(seq, tmp_path / "png.mcap", progress=False, frame_format="png")
+        with load_mcap(png) as back:
+            _assert_sequences_equal(seq, back)  # lossless: every pixel, event and pose
+        with load_mcap(raw) as back:
+            _assert_sequences_equal(seq, back)
+        with open(png, "rb") as f:
+            reader = make_reader(f)
+            summary = reader.get_summary()
+            assert summary is not None
+            channel = next(c for c in summary.channels.values() if c.topic == "/frames/right")
+            schema = summary.schemas[channel.schema_id]
+            assert (schema.name, schema.encoding) == ("foxglove.CompressedImage", "protobuf")
+            # Our descriptor matches Foxglove's own field for field.
+            pool = descriptor_pool.DescriptorPool()
+            for file in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+                pool.Add(file)
+            ours = pool.FindMessageTypeByName("foxglove.CompressedImage")
+            theirs = CompressedImage.DESCRIPTOR
+            assert {(f.name, f.number, f.type) for f in ours.fields} == {
+                (f.name, f.number, f.type) for f in theirs.fields
+            }
+            images = [
+                CompressedImage.FromString(m.data)
+                for _, c, m in reader.iter_messages()
+                if c.topic == "/frames/right"
+            ]
+        assert len(images) == len(seq.frames)
+        assert (images[2].format, images[2].frame_id) == ("png", "frame_right")
+        assert images[2].timestamp.ToNanoseconds() == seq.frames.t_ns[2]
+        decoded = cv2.imdecode(np.frombuffer(images[2].data, np.uint8), cv2.IMREAD_UNCHANGED)
+        np.testing.assert_array_equal(decoded, seq.frames[2].right)
+
+
+def test_an_unknown_frame_format_is_refused(tmp_path: Path) -> None:
+    from dhptam.datasets.mcap import McapRecorder
+    from dhptam.errors import InputError
+
+    with load_tumvie(_hand_made(tmp_path)) as seq:
+        with pytest.raises(InputError, match="frame_format must be one of raw, png") as err:
+            write_sequence(seq, tmp_path / "x.mcap", progress=False, frame_format="jpeg")
+        assert err.value.field == "frame_format"
+        with pytest.raises(InputError, match="frame_format"):
+            McapRecorder(tmp_path / "y.mcap", seq, frame_format="webp")
+    assert not list(tmp_path.glob("*.mcap*"))
+
+
+def _copy(
+    src: Path,
+    dst: Path,
+    *,
+    metadata: dict[str, str] | None = None,
+    frames: str = "raw",
+    right_frames: object = None,
+) -> Path:
+    """Copy a log written by write_sequence, optionally with other metadata, or with the right
+    frames replaced by ``right_frames(writer, t_ns)``."""
+    from dhptam._core import McapReader, McapWriter
+
+    reader = McapReader(src)
+    w = McapWriter(dst)
+    for side in ("left", "right"):
+        topic = f"/events/{side}"
+        w.add_events(topic, f"event_{side}", *reader.event_slice(topic, 0, reader.event_count(topic)))
+    for side in ("left", "right"):
+        topic = f"/frames/{side}"
+        for t_ns, frame_id, image in reader.images(topic, 0, reader.topics()[topic]["message_count"]):
+            if side == "right" and callable(right_frames):
+                right_frames(w, t_ns)
+            else:
+                w.add_image(topic, frame_id, t_ns, image)
+    meta = reader.metadata("dhptam.sequence")
+    assert meta is not None
+    w.add_metadata("dhptam.sequence", meta if metadata is None else metadata)
+    w.finish()
+    return dst
+
+
+@pytest.mark.parametrize(
+    ("edit", "field"),
+    [
+        (lambda m: m.pop("cameras"), "dhptam.sequence.cameras"),
+        (lambda m: m.pop("exposure_ns"), "dhptam.sequence.exposure_ns"),
+        (
+            lambda m: m.update(cameras=m["cameras"].replace('"event_right"', '"event_rigth"')),
+            "dhptam.sequence.cameras.event_right",
+        ),
+        (
+            lambda m: m.update(imu_from_cam=m["imu_from_cam"].replace('"frame_left"', '"left"')),
+            "dhptam.sequence.imu_from_cam.frame_left",
+        ),
+        (lambda m: m.update(cameras=m["cameras"][:-2]), "dhptam.sequence.cameras"),
+    ],
+)
+def test_missing_calibration_entries_name_the_file_and_the_field(tmp_path: Path, edit, field: str) -> None:  # type: ignore[no-untyped-def]
+    from dhptam._core import McapReader
+
+    good = _log(tmp_path)
+    meta = McapReader(good).metadata("dhptam.sequence")
+    assert meta is not None
+    edit(meta)
+    bad = _copy(good, tmp_path / "bad.mcap", metadata=meta)
+    with pytest.raises(ParseError, match=r"bad\.mcap: metadata dhptam\.sequence") as err:
+        load_mcap(bad)
+    assert err.value.path == str(bad) and err.value.field == field
+
+
+def test_an_unknown_chunk_compression_names_the_file_and_the_channel(tmp_path: Path) -> None:
+    with load_tumvie(_hand_made(tmp_path)) as seq:
+        good = write_sequence(seq, tmp_path / "lz4.mcap", progress=False, compression="lz4")
+    # Rename the compression of every chunk (and chunk index) to one no reader knows.
+    data = good.read_bytes()
+    needle = b"\x03\x00\x00\x00lz4"
+    assert data.count(needle) >= 2
+    bad = tmp_path / "lz9.mcap"
+    bad.write_bytes(data.replace(needle, b"\x03\x00\x00\x00lz9"))
+    with pytest.raises(ParseError, match=r"lz9\.mcap: /events/\w+: .*lz9") as err:
+        load_mcap(bad)
+    assert err.value.path == str(bad) and err.value.field in ("/events/left", "/events/right")
+
+
+def test_frames_of_another_schema_or_undecodable_png_are_refused(tmp_path: Path) -> None:
+    good = _log(tmp_path)
+
+    def poses(w, t_ns: int) -> None:  # type: ignore[no-untyped-def]
+        w.add_poses("/frames/right", "world", np.array([t_ns]), np.array([[0.0, 0, 0, 0, 0, 0, 1]]))
+
+    wrong = _copy(good, tmp_path / "wrong.mcap", right_frames=poses)
+    with pytest.raises(ParseError, match=r"/frames/right carries 'foxglove\.PoseInFrame'") as err:
+        load_mcap(wrong)
+    assert err.value.field == "/frames/right"
+
+    def garbage(w, t_ns: int) -> None:  # type: ignore[no-untyped-def]
+        w.add_compressed_image("/frames/right", "frame_right", t_ns, b"\x89PNG not really", "png")
+
+    broken = _copy(good, tmp_path / "broken.mcap", right_frames=garbage)
+    with load_mcap(broken) as seq:
+        with pytest.raises(ParseError, match=r"/frames/right frame 1: .* do not decode") as err:
+            seq.frames[1]
+        assert err.value.path == str(broken) and err.value.field == "/frames/right"

@@ -295,6 +295,7 @@ def _run_command(args: argparse.Namespace) -> int:
         trajectory_formats=tuple(args.trajectory_format or ()),
         viz=args.viz,
         record=args.record,
+        record_frames=args.record_frames,
     )
     states = ", ".join(f"{n} {s}" for s, n in sorted(result.states.items()))
     sys.stdout.write(
@@ -344,6 +345,12 @@ def _add_run_command(sub: Any) -> None:
         "--record",
         metavar="FILE.mcap",
         help="also record inputs and outputs (frames, events, poses, keyframes, map) into one MCAP log",
+    )
+    p.add_argument(
+        "--record-frames",
+        choices=["raw", "png"],
+        default="raw",
+        help="how --record stores frames: raw (foxglove.RawImage, default) or png (lossless, smaller)",
     )
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument(

@@ -358,6 +358,7 @@ def run(
     viz: str = "none",
     extractor: Any = None,
     record: str | Path | None = None,
+    record_frames: str = "raw",
 ) -> RunResult:
     """Runs dhptam on a sequence and writes the outputs into ``out`` (see the module docstring).
 
@@ -400,6 +401,9 @@ def run(
     record
         Also record the run's inputs (frames, raw events, calibration, ground truth) and
         outputs (trajectories, keyframes, map) into this MCAP log (``dhptam.datasets.mcap``).
+    record_frames
+        How ``record`` stores the frames: ``raw`` (``foxglove.RawImage``) or ``png`` (lossless
+        PNG in ``foxglove.CompressedImage``).
 
     Returns
     -------
@@ -448,7 +452,7 @@ def run(
         if record is not None:
             from .datasets.mcap import McapRecorder
 
-            outputs.recorder = McapRecorder(record, seq)
+            outputs.recorder = McapRecorder(record, seq, frame_format=record_frames)
         resources.callback(outputs.close)
         log.info(
             "run: %s, %d frames, mode %s, features %s, out %s",

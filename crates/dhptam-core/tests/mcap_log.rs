@@ -1,8 +1,8 @@
 //! MCAP logs: round trips, time-range reads of events, and errors on damaged files.
 
 use dhptam_core::io::mcap::{
-    CameraCalibration, LogCompression, LogOptions, LogReader, LogWriter, PointCloud, PoseInFrame,
-    RawImage, SchemaKind,
+    CameraCalibration, CompressedImage, LogCompression, LogOptions, LogReader, LogWriter,
+    PointCloud, PoseInFrame, RawImage, SchemaKind,
 };
 use dhptam_core::Error;
 
@@ -215,4 +215,158 @@ fn a_writer_dropped_unfinished_leaves_nothing() {
         .filter(|e| e.file_name().to_string_lossy().starts_with("dropped.mcap"))
         .collect();
     assert!(leftovers.is_empty());
+}
+
+#[test]
+fn compressed_images_round_trip_beside_raw_ones() {
+    let path = tmp("compressed.mcap");
+    let mut w = LogWriter::create(&path, LogOptions::default()).unwrap();
+    let frames: Vec<CompressedImage> = (0..3)
+        .map(|k| CompressedImage {
+            t_ns: 10 + k,
+            frame_id: "frame_left".into(),
+            data: vec![k as u8; 5 + k as usize],
+            format: "png".into(),
+        })
+        .collect();
+    for f in &frames {
+        w.add_compressed_image("/frames/left", f).unwrap();
+    }
+    let empty = CompressedImage {
+        format: "png".into(),
+        ..CompressedImage::default()
+    };
+    let err = w.add_compressed_image("/frames/left", &empty).unwrap_err();
+    assert!(err.to_string().contains("non-empty data"), "{err}");
+    w.finish().unwrap();
+    let r = LogReader::open(&path).unwrap();
+    assert_eq!(r.compressed_images("/frames/left", 0..3).unwrap(), frames);
+    assert_eq!(
+        r.compressed_images("/frames/left", 2..9).unwrap(),
+        frames[2..]
+    );
+    assert_eq!(
+        r.log_times("/frames/left", SchemaKind::CompressedImage)
+            .unwrap(),
+        vec![10, 11, 12]
+    );
+    // A compressed channel is not a raw one, and the error says which it is.
+    let err = r.images("/frames/left", 0..1).unwrap_err();
+    assert!(
+        err.to_string().contains("foxglove.CompressedImage"),
+        "{err}"
+    );
+    assert_eq!(format_field(err).1, "/frames/left");
+}
+
+#[test]
+fn a_chunk_with_an_unknown_compression_names_the_file_and_the_channel() {
+    let path = tmp("lz4.mcap");
+    write_log(&path, LogCompression::Lz4);
+    let mut bytes = std::fs::read(&path).unwrap();
+    // Rename the compression of every chunk (and its index entry) to one no reader knows:
+    // the string is stored as a u32 length and the name.
+    let needle = b"\x03\x00\x00\x00lz4";
+    let mut renamed = 0;
+    for i in 0..bytes.len() - needle.len() {
+        if &bytes[i..i + needle.len()] == needle {
+            bytes[i + 6] = b'9';
+            renamed += 1;
+        }
+    }
+    assert!(renamed >= 2, "{renamed}");
+    let bad = tmp("unknown-compression.mcap");
+    std::fs::write(&bad, &bytes).unwrap();
+    // Opening reads the last event batch, so the event channel is named.
+    let err = LogReader::open(&bad).err().unwrap();
+    let message = err.to_string();
+    let (p, field) = format_field(err);
+    assert!(p.ends_with("unknown-compression.mcap"), "{p}");
+    assert_eq!(field, "/events/left");
+    assert!(message.contains("lz9"), "{message}");
+}
+
+/// Inputs the `mcap` fuzz target once crashed on (`fuzz/regressions/mcap/`): each must open
+/// with an error or read consistently.
+#[test]
+fn fuzz_regressions_are_refused_or_read_consistently() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/mcap");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        seen += 1;
+        let reader = match LogReader::open(&path) {
+            Err(Error::Format { .. }) => continue,
+            Err(other) => panic!("{}: unexpected error kind {other}", path.display()),
+            Ok(reader) => reader,
+        };
+        for (topic, info) in reader.topics() {
+            if info.schema_name != SchemaKind::EventBatch.name() {
+                continue;
+            }
+            let count = reader.event_count(topic).unwrap();
+            let (t0, t1) = reader.event_time_range(topic).unwrap();
+            assert!(count == 0 || t0 < t1, "{}: [{t0}, {t1})", path.display());
+        }
+    }
+    assert!(seen >= 1, "no regression inputs in {}", dir.display());
+}
+
+#[test]
+fn a_record_longer_than_its_chunk_is_an_error_not_an_allocation_or_a_panic() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../fuzz/regressions/mcap");
+    // A compressed chunk whose message claims 2^56 bytes, and an uncompressed one whose record
+    // runs past the chunk's data.
+    for (name, expected) in [
+        ("record-length-beyond-its-chunk.mcap", "exceeds limit"),
+        (
+            "record-past-its-uncompressed-chunk.mcap",
+            "past the chunk's end",
+        ),
+        (
+            "summary-chunk-record-past-its-end.mcap",
+            "past the chunk's end",
+        ),
+    ] {
+        let path = dir.join(name);
+        let message = match LogReader::open(&path) {
+            Err(err) => err.to_string(),
+            // Some channel must fail to read, with an error and not an allocation or a panic.
+            Ok(reader) => reader
+                .topics()
+                .iter()
+                .filter_map(|(topic, info)| {
+                    let n = info.message_count;
+                    match SchemaKind::from_name(&info.schema_name)? {
+                        SchemaKind::EventBatch => reader.event_slice(topic, 0, usize::MAX).err(),
+                        SchemaKind::RawImage => reader.images(topic, 0..n).err(),
+                        SchemaKind::CompressedImage => reader.compressed_images(topic, 0..n).err(),
+                        SchemaKind::CameraCalibration => reader.calibrations(topic).err(),
+                        SchemaKind::PoseInFrame => reader.poses(topic).err(),
+                        SchemaKind::PointCloud => reader.point_clouds(topic).err(),
+                    }
+                })
+                .map(|e| e.to_string())
+                .find(|m| m.to_lowercase().contains(expected))
+                .unwrap_or_default(),
+        };
+        assert!(
+            message.to_lowercase().contains(expected) && message.contains(name),
+            "{name}: {message:?}"
+        );
+    }
+}
+
+#[test]
+fn event_batches_whose_log_time_is_not_their_first_event_are_refused() {
+    // The first regression input: a batch logged at 16 057 320 ns whose events end at 1 040 ns.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../../fuzz/regressions/mcap/batch-log-time-after-its-events.mcap");
+    let err = LogReader::open(&path).err().expect("a damaged log");
+    let message = err.to_string();
+    assert!(message.contains("/events/left"), "{message}");
+    assert!(
+        message.contains("logged at") && message.contains("ns"),
+        "{message}"
+    );
 }

@@ -120,3 +120,12 @@ impl DetachGuarded for Python<'_> {
             .map_err(|payload| panic_to_py_err(what, payload))
     }
 }
+
+/// Test-only entry point: panics with `message` inside [`DetachGuarded::detach_guarded`], so the
+/// test suite can show that a core panic reaches Python as `dhptam.errors.InternalError`
+/// carrying the message (and the interpreter lives on). It does nothing else; no dhptam code
+/// calls it.
+#[pyfunction]
+pub fn _testing_panic(py: Python<'_>, message: &str) -> PyResult<()> {
+    py.detach_guarded("_testing_panic", || -> () { panic!("{message}") })
+}

@@ -98,6 +98,8 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     // MCAP logs (dhptam.datasets.mcap).
     m.add_class::<mcap::PyMcapWriter>()?;
     m.add_class::<mcap::PyMcapReader>()?;
+    // Test-only: shows that a core panic becomes InternalError (tests/test_bad_input.py).
+    m.add_function(wrap_pyfunction!(errors::_testing_panic, m)?)?;
     m.add_class::<slam::PySystem>()?;
     m.add_function(wrap_pyfunction!(solver::solve_pnp_ransac, m)?)?;
     m.add_function(wrap_pyfunction!(_reset_log_cache, m)?)?;

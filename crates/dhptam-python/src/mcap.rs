@@ -8,18 +8,18 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use dhptam_core::io::mcap::{
-    CameraCalibration, LogCompression, LogOptions, LogReader, LogWriter, PointCloud, PoseInFrame,
-    RawImage, SchemaKind,
+    CameraCalibration, CompressedImage, LogCompression, LogOptions, LogReader, LogWriter,
+    PointCloud, PoseInFrame, RawImage, SchemaKind,
 };
 use numpy::ndarray::{Array2, Array3};
 use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyReadonlyArray1, PyReadonlyArrayDyn, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
-use pyo3::types::PyDict;
+use pyo3::types::{PyBytes, PyDict};
 
 use crate::arrays;
-use crate::errors::{input_error, IntoPyResult};
+use crate::errors::{input_error, DetachGuarded, IntoPyResult};
 use crate::events::exact;
 
 /// Writes a dhptam MCAP log; see `dhptam_core::io::mcap` for the layout.
@@ -49,7 +49,7 @@ impl PyMcapWriter {
                 format!("a finished or aborted writer of {}", self.path.display()),
             )
         })?;
-        py.detach(|| f(writer)).py()
+        py.detach_guarded("McapWriter", || f(writer))?.py()
     }
 }
 
@@ -57,8 +57,8 @@ fn schema_kind(name: &str) -> PyResult<SchemaKind> {
     SchemaKind::from_name(name).ok_or_else(|| {
         input_error(
             "schema",
-            "one of dhptam.EventBatch, foxglove.RawImage, foxglove.CameraCalibration, \
-             foxglove.PoseInFrame, foxglove.PointCloud",
+            "one of dhptam.EventBatch, foxglove.RawImage, foxglove.CompressedImage, \
+             foxglove.CameraCalibration, foxglove.PoseInFrame, foxglove.PointCloud",
             format!("{name:?}"),
         )
     })
@@ -143,6 +143,25 @@ impl PyMcapWriter {
             data,
         };
         self.with(py, |w| w.add_image(topic, &message))
+    }
+
+    /// Writes an image file's bytes (`format` `png` or `jpeg`) as a `foxglove.CompressedImage`.
+    fn add_compressed_image(
+        &self,
+        py: Python<'_>,
+        topic: &str,
+        frame_id: &str,
+        t_ns: i64,
+        data: &[u8],
+        format: &str,
+    ) -> PyResult<()> {
+        let message = CompressedImage {
+            t_ns,
+            frame_id: frame_id.to_owned(),
+            data: data.to_vec(),
+            format: format.to_owned(),
+        };
+        self.with(py, |w| w.add_compressed_image(topic, &message))
     }
 
     /// Writes a `foxglove.CameraCalibration` (K, R row-major 3×3; P row-major 3×4).
@@ -250,7 +269,7 @@ impl PyMcapWriter {
             .map_err(|_| input_error("McapWriter", "a usable writer", "a poisoned lock"))?
             .take();
         match writer {
-            Some(w) => py.detach(|| w.finish()).py(),
+            Some(w) => py.detach_guarded("McapWriter.finish", || w.finish())?.py(),
             None => Err(input_error(
                 "McapWriter",
                 "an open writer",
@@ -285,7 +304,9 @@ impl PyMcapReader {
     /// Opens a log and reads its summary and indexes.
     #[new]
     fn new(py: Python<'_>, path: PathBuf) -> PyResult<Self> {
-        let inner = py.detach(|| LogReader::open(&path)).py()?;
+        let inner = py
+            .detach_guarded("McapReader.open", || LogReader::open(&path))?
+            .py()?;
         Ok(PyMcapReader { inner })
     }
 
@@ -336,7 +357,11 @@ impl PyMcapReader {
         start: usize,
         stop: usize,
     ) -> PyResult<Vec<(i64, String, Bound<'py, PyAny>)>> {
-        let images = py.detach(|| self.inner.images(topic, start..stop)).py()?;
+        let images = py
+            .detach_guarded("McapReader.images", || {
+                self.inner.images(topic, start..stop)
+            })?
+            .py()?;
         images
             .into_iter()
             .map(|m| {
@@ -379,6 +404,26 @@ impl PyMcapReader {
             .collect()
     }
 
+    /// Images `start .. stop` of a CompressedImage channel as `(t_ns, frame_id, format, data)`,
+    /// `data` the image file's bytes (decode with OpenCV or PIL).
+    fn compressed_images<'py>(
+        &self,
+        py: Python<'py>,
+        topic: &str,
+        start: usize,
+        stop: usize,
+    ) -> PyResult<Vec<(i64, String, String, Bound<'py, PyBytes>)>> {
+        let images = py
+            .detach_guarded("McapReader.compressed_images", || {
+                self.inner.compressed_images(topic, start..stop)
+            })?
+            .py()?;
+        Ok(images
+            .into_iter()
+            .map(|m| (m.t_ns, m.frame_id, m.format, PyBytes::new(py, &m.data)))
+            .collect())
+    }
+
     /// Every pose of a PoseInFrame channel: `(t_ns, poses (N, 7) x y z qx qy qz qw, frame_ids)`.
     fn poses<'py>(
         &self,
@@ -389,7 +434,9 @@ impl PyMcapReader {
         Bound<'py, PyArray2<f64>>,
         Vec<String>,
     )> {
-        let poses = py.detach(|| self.inner.poses(topic)).py()?;
+        let poses = py
+            .detach_guarded("McapReader.poses", || self.inner.poses(topic))?
+            .py()?;
         let t: Vec<i64> = poses.iter().map(|m| m.t_ns).collect();
         let mut rows = Array2::<f64>::zeros((poses.len(), 7));
         for (i, m) in poses.iter().enumerate() {
@@ -407,7 +454,9 @@ impl PyMcapReader {
     /// Every CameraCalibration message as a dict (`t_ns`, `frame_id`, `width`, `height`,
     /// `distortion_model`, `D`, `K`, `R`, `P`).
     fn calibrations<'py>(&self, py: Python<'py>, topic: &str) -> PyResult<Vec<Bound<'py, PyDict>>> {
-        let messages = py.detach(|| self.inner.calibrations(topic)).py()?;
+        let messages = py
+            .detach_guarded("McapReader.calibrations", || self.inner.calibrations(topic))?
+            .py()?;
         messages
             .into_iter()
             .map(|m| {
@@ -432,7 +481,9 @@ impl PyMcapReader {
         py: Python<'py>,
         topic: &str,
     ) -> PyResult<Vec<(i64, String, Bound<'py, PyArray2<f32>>)>> {
-        let clouds = py.detach(|| self.inner.point_clouds(topic)).py()?;
+        let clouds = py
+            .detach_guarded("McapReader.point_clouds", || self.inner.point_clouds(topic))?
+            .py()?;
         Ok(clouds
             .into_iter()
             .map(|c| {
@@ -464,8 +515,10 @@ impl PyMcapReader {
         t0_ns: i64,
         t1_ns: i64,
     ) -> PyResult<(usize, usize)> {
-        py.detach(|| self.inner.event_index_range(topic, t0_ns, t1_ns))
-            .py()
+        py.detach_guarded("McapReader.event_index_range", || {
+            self.inner.event_index_range(topic, t0_ns, t1_ns)
+        })?
+        .py()
     }
 
     /// Events `i0 .. i1 - 1` as `(x uint16, y uint16, t_ns int64, p int8)`.
@@ -481,7 +534,11 @@ impl PyMcapReader {
         Bound<'py, PyArray1<i64>>,
         Bound<'py, PyArray1<i8>>,
     )> {
-        let e = py.detach(|| self.inner.event_slice(topic, i0, i1)).py()?;
+        let e = py
+            .detach_guarded("McapReader.event_slice", || {
+                self.inner.event_slice(topic, i0, i1)
+            })?
+            .py()?;
         Ok((
             e.x.into_pyarray(py),
             e.y.into_pyarray(py),

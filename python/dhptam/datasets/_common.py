@@ -69,7 +69,10 @@ def numbers(value: Any, count: int | None, path: Path, field: str) -> list[float
 
 
 def matrix(value: Any, rows: int, cols: int, path: Path, field: str) -> npt.NDArray[np.float64]:
-    """A ``rows × cols`` matrix written as nested lists or as ROS/OpenCV ``{rows, cols, data}``."""
+    """A ``rows × cols`` matrix written as nested lists, as one flat row-major list of
+    ``rows * cols`` numbers (VECtor's extrinsics files), or as ROS/OpenCV ``{rows, cols, data}``."""
+    if isinstance(value, list) and len(value) == rows * cols and not any(isinstance(r, list) for r in value):
+        return np.asarray(numbers(value, rows * cols, path, field), np.float64).reshape(rows, cols)
     if isinstance(value, dict):
         r, c = value.get("rows"), value.get("cols")
         if (r, c) != (rows, cols):
@@ -124,9 +127,36 @@ def seconds_to_ns(token: str, path: Path, line: int, field: str) -> int:
     return int((value * _NS).to_integral_value())
 
 
+def check_h5_filters(dataset: Any, path: Path, field: str) -> None:
+    """Raise :class:`FileError` naming the file, the dataset and the filter when ``dataset`` is
+    compressed with an HDF5 filter this process cannot decode (a plugin that is not installed
+    or not registered), instead of failing later on the first read with HDF5's own message."""
+    import h5py
+
+    try:
+        plist = dataset.id.get_create_plist()
+        filters = [plist.get_filter(i) for i in range(plist.get_nfilters())]
+    except (AttributeError, OSError, RuntimeError, ValueError):
+        return  # not a chunked dataset of a real file: nothing to decode
+    for code, _flags, _values, name in filters:
+        if not h5py.h5z.filter_avail(code):
+            label = name.decode(errors="replace") if isinstance(name, bytes) else str(name)
+            raise FileError(
+                f"{path}: dataset /{field} is compressed with HDF5 filter {code} "
+                f"({label or 'unnamed'}), which is not available here; install or register its "
+                "plugin (pip install hdf5plugin covers zstd, Blosc, LZ4 and bitshuffle)",
+                path=str(path),
+                field=field,
+            )
+
+
 def read_table(path: Path, columns: int, what: str) -> list[tuple[int, list[str]]]:
-    """Rows ``(line, tokens)`` of a whitespace or comma table; ``#`` lines and a leading header
-    line whose first token is not a number are skipped."""
+    """Rows ``(line, tokens)`` of a whitespace or comma table (line numbers from 1).
+
+    Blank lines and lines starting with ``#`` or ``%`` are comments; the first other line is
+    taken as a header and skipped when its first token is not a number (TUM-VIE, VECtor and
+    EuRoC files carry at most one such line). Every data row must hold ``columns`` tokens.
+    """
     if not path.is_file():
         raise FileError(f"{path}: {what} file not found", path=str(path))
     try:
@@ -134,13 +164,15 @@ def read_table(path: Path, columns: int, what: str) -> list[tuple[int, list[str]
     except (OSError, UnicodeDecodeError) as err:
         raise FileError(f"{path}: cannot read {what} file ({err})", path=str(path)) from None
     rows: list[tuple[int, list[str]]] = []
+    first = True
     for number, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#") or line.startswith("%"):
             continue
         tokens = line.replace(",", " ").split()
-        if not rows and not _is_number(tokens[0]):
-            continue  # a header line without '#'
+        is_first, first = first, False
+        if is_first and not _is_number(tokens[0]):
+            continue  # the header line, written without '#'
         if len(tokens) != columns:
             raise ParseError(
                 f"{path}:{number}: expected {columns} values per line ({what}), found {len(tokens)}",

@@ -8,7 +8,8 @@ The file is dhptam's own recording format (layout in ``dhptam_core::io::mcap``; 
 topic                       schema                          content
 ==========================  ==============================  ====================================
 ``/events/{left,right}``    ``dhptam.EventBatch``           events in fixed-size batches
-``/frames/{left,right}``    ``foxglove.RawImage``           ``mono8`` frames, at exposure start
+``/frames/{left,right}``    ``foxglove.RawImage`` or        ``mono8`` frames, at exposure start
+                            ``foxglove.CompressedImage``    (``frame_format="png"``: lossless PNG)
 ``/calibration/<camera>``   ``foxglove.CameraCalibration``  one per camera of the rig
 ``/ground_truth``           ``foxglove.PoseInFrame``        ``world_from_cam`` of the left frame
                                                             camera (when the sequence has one)
@@ -68,6 +69,11 @@ CALIBRATION_TOPIC = "/calibration/{camera}"
 GROUND_TRUTH_TOPIC = "/ground_truth"
 SEQUENCE_METADATA = "dhptam.sequence"
 """Name of the metadata record holding the exact calibration, exposures and sequence name."""
+RAW_IMAGE = "foxglove.RawImage"
+COMPRESSED_IMAGE = "foxglove.CompressedImage"
+FRAME_FORMATS = ("raw", "png")
+"""How frames are written: ``raw`` (``foxglove.RawImage`` mono8) or ``png`` (lossless PNG in a
+``foxglove.CompressedImage``: smaller logs, slower to write)."""
 
 # Events handed to the writer per call: bounds the memory write_sequence needs.
 _EVENT_BLOCK = 1 << 20
@@ -118,6 +124,30 @@ def _progress(total: int, enabled: bool, desc: str) -> Any:
     return tqdm(total=total, desc=desc, unit="msg", leave=False)
 
 
+def _check_frame_format(frame_format: str) -> None:
+    if frame_format not in FRAME_FORMATS:
+        raise InputError(
+            f"frame_format must be one of {', '.join(FRAME_FORMATS)}, got {frame_format!r}",
+            field="frame_format",
+        )
+
+
+def _add_frame(
+    writer: McapWriter, side: str, t_ns: int, image: npt.NDArray[np.uint8], frame_format: str
+) -> None:
+    """Write one frame of ``side`` as a RawImage or a PNG CompressedImage."""
+    topic, frame_id = FRAMES_TOPIC.format(side=side), f"frame_{side}"
+    if frame_format == "raw":
+        writer.add_image(topic, frame_id, t_ns, image)
+        return
+    import cv2
+
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(image))
+    if not ok:
+        raise InputError(f"{topic}: frame at {t_ns} ns could not be encoded as PNG", field=topic)
+    writer.add_compressed_image(topic, frame_id, t_ns, png.tobytes(), "png")
+
+
 def sequence_start_ns(sequence: Sequence) -> int:
     """The earliest frame or event time of ``sequence`` (0 when it has neither): the origin of
     :func:`write_sequence`'s ``start_s``."""
@@ -134,6 +164,7 @@ def write_sequence(
     duration_s: float | None = None,
     progress: bool = True,
     compression: str = "zstd",
+    frame_format: str = "raw",
 ) -> Path:
     """Write ``sequence`` (or a time slice of it) into the MCAP log ``path``.
 
@@ -151,12 +182,16 @@ def write_sequence(
         Show a tqdm bar on stderr (when tqdm is installed).
     compression
         Chunk compression: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
+    frame_format
+        ``"raw"`` (default): frames as ``foxglove.RawImage``; ``"png"``: as lossless PNG in
+        ``foxglove.CompressedImage`` (read back identical).
 
     Returns
     -------
     The path of the written log.
     """
     path = Path(path)
+    _check_frame_format(frame_format)
     ends = [int(sequence.frames.t_ns[-1]) + 1] if len(sequence.frames) else []
     ends += [source.t_range_ns[1] for source in sequence.events.values() if len(source)]
     t_first = sequence_start_ns(sequence)
@@ -185,8 +220,8 @@ def write_sequence(
                     bar.update(1)
         for i in frame_ids:
             pair = frames[i]
-            writer.add_image(FRAMES_TOPIC.format(side="left"), "frame_left", pair.t_ns, pair.left)
-            writer.add_image(FRAMES_TOPIC.format(side="right"), "frame_right", pair.t_ns, pair.right)
+            _add_frame(writer, "left", pair.t_ns, pair.left, frame_format)
+            _add_frame(writer, "right", pair.t_ns, pair.right, frame_format)
             if bar is not None:
                 bar.update(1)
         gt = sequence.ground_truth
@@ -252,7 +287,8 @@ def _sequence_metadata(sequence: Sequence, exposures: list[int]) -> dict[str, st
 
 
 class McapFrames(Frames):
-    """Stereo frame pairs of an MCAP log; images are decoded from the log on access."""
+    """Stereo frame pairs of an MCAP log; images are decoded from the log on access, from
+    ``foxglove.RawImage`` (mono8) or ``foxglove.CompressedImage`` (PNG or JPEG) messages."""
 
     def __init__(
         self,
@@ -260,11 +296,13 @@ class McapFrames(Frames):
         t_ns: npt.NDArray[np.int64],
         exposure_ns: npt.NDArray[np.int64],
         sizes: dict[str, tuple[int, int]],
+        schemas: dict[str, str] | None = None,
     ) -> None:
         n = len(t_ns)
         path = Path(reader.path)
         super().__init__(t_ns, exposure_ns, [path] * n, [path] * n, sizes["left"], sizes["right"])
         self._reader = reader
+        self._schemas = schemas or {"left": RAW_IMAGE, "right": RAW_IMAGE}
 
     def __getitem__(self, index: int) -> FramePair:
         n = len(self)
@@ -284,9 +322,16 @@ class McapFrames(Frames):
 
     def _image(self, side: str, i: int) -> npt.NDArray[np.uint8]:
         topic = FRAMES_TOPIC.format(side=side)
-        ((_, _, image),) = self._reader.images(topic, i, i + 1)
+        if self._schemas[side] == COMPRESSED_IMAGE:
+            image = self._decode(topic, i)
+        else:
+            ((_, _, image),) = self._reader.images(topic, i, i + 1)
         size = self._sizes[side]
-        if image.ndim != 2 or (size is not None and (image.shape[1], image.shape[0]) != size):
+        if (
+            image.ndim != 2
+            or image.dtype != np.uint8
+            or (size is not None and (image.shape[1], image.shape[0]) != size)
+        ):
             raise ParseError(
                 f"{self._reader.path}: {topic} frame {i} is {image.shape} ({image.dtype}); the "
                 f"calibration of the {side} frame camera says mono8 {size}",
@@ -294,6 +339,20 @@ class McapFrames(Frames):
                 field=topic,
             )
         return np.asarray(image, dtype=np.uint8)
+
+    def _decode(self, topic: str, i: int) -> npt.NDArray[Any]:
+        import cv2
+
+        ((_, _, fmt, data),) = self._reader.compressed_images(topic, i, i + 1)
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is None:
+            raise ParseError(
+                f"{self._reader.path}: {topic} frame {i}: its {len(data)} bytes of format {fmt!r} do "
+                "not decode as an image",
+                path=str(self._reader.path),
+                field=topic,
+            )
+        return np.asarray(image)
 
 
 class McapEventSource(WindowedEvents):
@@ -409,6 +468,27 @@ def _read_calibration(meta: dict[str, str], path: Path) -> RigCalibration:
     return RigCalibration(cameras, imu_from_cam)
 
 
+def _frame_schema(reader: McapReader, side: str, path: Path) -> str:
+    """The schema of a frame channel: RawImage or CompressedImage, else a ParseError."""
+    topic = FRAMES_TOPIC.format(side=side)
+    info = reader.topics().get(topic)
+    if info is None:
+        raise ParseError(
+            f"{path}: channel {topic} is missing (the log has {sorted(reader.topics())})",
+            path=str(path),
+            field=topic,
+        )
+    schema = str(info["schema_name"])
+    if schema not in (RAW_IMAGE, COMPRESSED_IMAGE):
+        raise ParseError(
+            f"{path}: channel {topic} carries {schema!r} messages; expected {RAW_IMAGE} or "
+            f"{COMPRESSED_IMAGE}",
+            path=str(path),
+            field=topic,
+        )
+    return schema
+
+
 def load_mcap(path: str | Path) -> Sequence:
     """Read a log written by :func:`write_sequence` (or ``dhptam run --record``) as a sequence.
 
@@ -427,8 +507,9 @@ def load_mcap(path: str | Path) -> Sequence:
             field=SEQUENCE_METADATA,
         )
     calibration = _read_calibration(meta, path)
+    schemas = {side: _frame_schema(reader, side, path) for side in ("left", "right")}
     times = {
-        side: np.asarray(reader.log_times(FRAMES_TOPIC.format(side=side), "foxglove.RawImage"), np.int64)
+        side: np.asarray(reader.log_times(FRAMES_TOPIC.format(side=side), schemas[side]), np.int64)
         for side in ("left", "right")
     }
     if not np.array_equal(times["left"], times["right"]):
@@ -448,7 +529,7 @@ def load_mcap(path: str | Path) -> Sequence:
         )
     cams = calibration.cameras
     sizes = {side: (cams[f"frame_{side}"].width, cams[f"frame_{side}"].height) for side in ("left", "right")}
-    frames = McapFrames(reader, times["left"], exposure, sizes)
+    frames = McapFrames(reader, times["left"], exposure, sizes, schemas)
     events = {side: McapEventSource(reader, side) for side in EVENT_SIDES}
     ground_truth = None
     if GROUND_TRUTH_TOPIC in reader.topics():
@@ -484,11 +565,16 @@ class McapRecorder:
     trajectory (``/slam/world_from_frame_left``, the left frame camera, comparable with
     ``/ground_truth``), the keyframes (``/slam/keyframes``, left rectified frame camera) and
     the final map (``/slam/map``). The log is also a sequence: :func:`load_mcap` reads it back.
+    ``frame_format`` is as in :func:`write_sequence`.
     """
 
-    def __init__(self, path: str | Path, sequence: Sequence, *, compression: str = "zstd") -> None:
+    def __init__(
+        self, path: str | Path, sequence: Sequence, *, compression: str = "zstd", frame_format: str = "raw"
+    ) -> None:
+        _check_frame_format(frame_format)
         self.path = Path(path)
         self._seq = sequence
+        self._frame_format = frame_format
         self._writer = McapWriter(self.path, compression=compression)
         self._t_events: int | None = None
         self._frames: list[int] = []
@@ -510,8 +596,8 @@ class McapRecorder:
             w = src.window(self._t_events, t_mid)
             self._writer.add_events(EVENTS_TOPIC.format(side=side), f"event_{side}", w.x, w.y, w.t_ns, w.p)
         self._t_events = max(self._t_events, t_mid)
-        self._writer.add_image(FRAMES_TOPIC.format(side="left"), "frame_left", pair.t_ns, pair.left)
-        self._writer.add_image(FRAMES_TOPIC.format(side="right"), "frame_right", pair.t_ns, pair.right)
+        _add_frame(self._writer, "left", pair.t_ns, pair.left, self._frame_format)
+        _add_frame(self._writer, "right", pair.t_ns, pair.right, self._frame_format)
         self._frames.append(pair.index)
 
     def finish(
@@ -551,9 +637,12 @@ class McapRecorder:
 
 __all__ = [
     "CALIBRATION_TOPIC",
+    "COMPRESSED_IMAGE",
     "EVENTS_TOPIC",
     "FRAMES_TOPIC",
+    "FRAME_FORMATS",
     "GROUND_TRUTH_TOPIC",
+    "RAW_IMAGE",
     "SEQUENCE_METADATA",
     "McapEventSource",
     "McapFrames",

@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from ..errors import FileError, InputError, ParseError
 from ..trajectory import poses_to_rows
-from ._common import check_increasing, lower_bound, pair_stereo
+from ._common import check_h5_filters, check_increasing, lower_bound, pair_stereo
 from .kalibr import rig_from_kalibr
 from .sequence import EventWindow, Frames, GroundTruth, RigCalibration, Sequence
 
@@ -68,6 +68,7 @@ def _dataset(f: Any, key: str, path: Path, shape_tail: tuple[int, ...], ndim: in
             path=str(path),
             field=key,
         )
+    check_h5_filters(d, path, key)
     return d
 
 

@@ -47,6 +47,7 @@ import numpy.typing as npt
 
 from ..errors import FileError, InputError, ParseError
 from ..geometry import SE3, Camera
+from ._common import check_h5_filters
 
 CAMERA_KEYS: tuple[str, str, str, str] = ("frame_left", "frame_right", "event_left", "event_right")
 """Camera names, in Basalt's calibration order (indices 0, 1, 2, 3)."""
@@ -327,6 +328,7 @@ class EventSource:
                 ) from None
             if not hasattr(dset, "dtype") or dset.ndim != 1:
                 raise ParseError(f"{self.path}: /{key} must be a 1-D dataset", path=str(self.path), field=key)
+            check_h5_filters(dset, self.path, key)
             if dset.dtype.kind not in "iu" and not (name == "p" and dset.dtype.kind == "b"):
                 raise ParseError(
                     f"{self.path}: /{key} has dtype {dset.dtype}, expected integers"

@@ -47,6 +47,7 @@ import numpy.typing as npt
 
 from ..errors import FileError, InputError, ParseError
 from ..geometry import SE3, Camera
+from ._common import read_table
 from .sequence import (
     CAMERA_KEYS,
     EVENT_SIDES,
@@ -89,52 +90,8 @@ def _us_to_ns(token: str, path: Path, line: int, field: str) -> int:
     return int((value * 1000).to_integral_value())
 
 
-def _read_rows(path: Path, columns: int, what: str) -> list[tuple[int, list[str]]]:
-    """Data rows (1-based line number, tokens) of a whitespace table.
-
-    Lines starting with '#' are comments; the first line is also taken as the header when it
-    does not start with a number, as the files carry one header line.
-    """
-    if not path.is_file():
-        raise FileError(f"{path}: {what} file not found", path=str(path))
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise FileError(f"{path}: cannot read {what} file ({err})", path=str(path)) from None
-    rows = []
-    first = True
-    for number, raw in enumerate(text.splitlines(), start=1):
-        stripped = raw.strip()
-        if not stripped:
-            continue
-        is_first, first = first, False
-        if stripped.startswith("#"):
-            continue
-        tokens = stripped.replace(",", " ").split()
-        if is_first and _is_header(tokens[0]):
-            continue  # the header line, written without '#'
-        if len(tokens) != columns:
-            raise ParseError(
-                f"{path}:{number}: expected {columns} value(s) per line ({what}), found {len(tokens)}",
-                path=str(path),
-                line=number,
-                field=what,
-            )
-        rows.append((number, tokens))
-    return rows
-
-
-def _is_header(token: str) -> bool:
-    """Whether the first token of a file's first data line is a word rather than a number."""
-    try:
-        Decimal(token)
-    except InvalidOperation:
-        return True
-    return False
-
-
 def _read_times_us(path: Path, what: str, *, strictly_increasing: bool) -> npt.NDArray[np.int64]:
-    rows = _read_rows(path, 1, what)
+    rows = read_table(path, 1, what)
     values = np.array([_us_to_ns(tok[0], path, line, what) for line, tok in rows], dtype=np.int64)
     if strictly_increasing:
         _check_increasing(values, [line for line, _ in rows], path, what)
@@ -368,7 +325,7 @@ def _image_list(folder: Path, count: int, ts_path: Path) -> list[Path]:
 
 
 def _read_mocap(path: Path) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
-    rows = _read_rows(path, 8, "mocap pose")
+    rows = read_table(path, 8, "mocap pose")
     t_ns = np.array([_us_to_ns(tok[0], path, line, "mocap time") for line, tok in rows], dtype=np.int64)
     _check_increasing(t_ns, [line for line, _ in rows], path, "mocap time")
     poses = np.empty((len(rows), 7), dtype=np.float64)

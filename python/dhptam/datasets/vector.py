@@ -1,29 +1,47 @@
 """VECtor (Gao et al. 2022): the synced HDF5 + PNG release, and its calibration files.
 
-Layout of a sequence folder (SPEC-NOTES §7)::
+Layout of a sequence folder (SPEC-NOTES §7; names as the VECtor release and the public
+loaders written against it use them)::
 
     <seq>.synced.left_event.hdf5    /events/{x,y} u16, /events/p u8 (0/1), /events/t u32 µs after
     <seq>.synced.right_event.hdf5   /t_offset (i64 µs), /ms_to_idx; zstd (read via hdf5plugin)
-    <seq>.synced.left_camera/       000000.png ... and timestamp.txt: two comment lines, then
+    <seq>.synced.left_camera/       PNG images and timestamp.txt: two comment lines, then
     <seq>.synced.right_camera/      "start end" of each exposure in seconds
     <seq>.synced.gt.txt             timestamp[s] tx ty tz qx qy qz qw: world_from_body
+
+The images are named by their time (``1643091527.996090.png``) in the release; any names work
+here, taken in order of (length, name), which is time order for such names and for numbered
+ones (``000000.png``); their count must match ``timestamp.txt``.
 
 The event files follow the DSEC convention that :class:`~dhptam.datasets.EventSource` reads
 (``t + t_offset`` on the sequence clock). A frame's stamp is the start of its exposure and
 ``exposure = end - start``; both are parsed exactly from decimal seconds.
 
-Calibration (a folder, by default the sequence folder, its ``calibration/`` or its parent):
+Calibration (a folder; by default the first of the sequence folder, its ``calibration/`` or
+``0_calib/``, its parent, or the parent's ``calibration/`` or ``0_calib/`` — the release keeps
+the calibration files in ``0_calib/`` beside the sequence folders — that holds the left frame
+camera's intrinsics):
 
 * ROS ``camera_info`` YAML intrinsics per camera, found by name:
-  ``*left_regular_camera*.yaml`` (frame_left), ``*right_regular_camera*.yaml``,
-  ``*left_event_camera*.yaml``, ``*right_event_camera*.yaml``, each with ``image_width``,
-  ``image_height``, ``camera_matrix`` (3x3), ``distortion_model: plumb_bob`` and
-  ``distortion_coefficients`` ``[k1, k2, p1, p2, k3]``;
+  ``*left_regular_camera*.yaml`` (frame_left, ``left_regular_camera_intrinsic_results.yaml``
+  in the release), ``*right_regular_camera*.yaml``, ``*left_event_camera*.yaml``,
+  ``*right_event_camera*.yaml``, each with ``image_width``, ``image_height``,
+  ``camera_matrix`` (3x3), ``distortion_model: plumb_bob`` and ``distortion_coefficients``
+  ``[k1, k2, p1, p2, k3]``;
 * the joint extrinsics ``*joint*extrinsic*.yaml``: ``camN: {T_cam0_camN: 4x4}`` =
   ``cam0_from_camN``; ``camera_order`` says which rig camera each ``camN`` is (default
-  cam0..cam3 = frame_left, frame_right, event_left, event_right);
-* the camera–body transform ``*body*.yaml`` (or ``*mocap*extrinsic*.yaml``) with
-  ``T_body_cam0`` = ``body_from_cam0``, or ``body_from_cam0=`` given directly.
+  cam0..cam3 = frame_left, frame_right, event_left, event_right). The release has one file
+  per rig set-up, ``small_scale_joint_camera_extrinsic_results.yaml`` and
+  ``large_scale_...``; when a folder holds both, pass the one of the sequence as
+  ``joint_extrinsics=``;
+* the camera–body transform: ``*mocap*extrinsic*.yaml`` (the release's
+  ``camera_mocap_extrinsic_results1.yaml``, ``cam0: {T_body_cam, T_cam_body}``) or a
+  ``*body*.yaml`` with ``T_body_cam0`` at the top level; either key of the release
+  (``T_body_cam`` = ``body_from_cam0``, or ``T_cam_body``, its inverse) is read, or
+  ``body_from_cam0=`` is given directly.
+
+4x4 matrices may be nested lists, one flat row-major list of 16 numbers (as the release
+writes them) or ``{rows, cols, data}``.
 
 The rig frame of the resulting :class:`~dhptam.datasets.RigCalibration` is ``cam0``
 (``imu_from_cam[k] = cam0_from_k``). Ground truth of the left frame camera:
@@ -62,7 +80,9 @@ INTRINSICS_GLOBS: dict[str, str] = {
 }
 """File-name patterns of the four intrinsics files inside a calibration folder."""
 EXTRINSICS_GLOB = "*joint*extrinsic*.yaml"
-BODY_GLOBS = ("*body*.yaml", "*mocap*extrinsic*.yaml")
+BODY_GLOBS = ("*mocap*extrinsic*.yaml", "*body*.yaml")
+CALIBRATION_FOLDERS = ("", "calibration", "0_calib")
+"""Sub-folders of the sequence folder, then of its parent, searched for the calibration."""
 DEFAULT_ORDER: tuple[str, str, str, str] = CAMERA_KEYS
 
 
@@ -118,12 +138,13 @@ def read_joint_extrinsics(path: str | Path) -> dict[str, SE3]:
     return out
 
 
-def _glob_one(folder: Path, pattern: str, what: str) -> Path:
+def _glob_one(folder: Path, pattern: str, what: str, choose: str | None = None) -> Path:
     found = sorted(folder.glob(pattern))
     if len(found) != 1:
         raise FileError(
             f"{folder}: expected one {what} file matching {pattern!r}, found {len(found)}"
-            + (f" ({', '.join(p.name for p in found)})" if found else ""),
+            + (f" ({', '.join(p.name for p in found)})" if found else "")
+            + (f"; pass {choose} to choose" if choose and len(found) > 1 else ""),
             path=str(folder),
             field=what,
         )
@@ -131,9 +152,14 @@ def _glob_one(folder: Path, pattern: str, what: str) -> Path:
 
 
 def read_vector_calibration(
-    folder: str | Path, camera_order: tuple[str, ...] = DEFAULT_ORDER
+    folder: str | Path,
+    camera_order: tuple[str, ...] = DEFAULT_ORDER,
+    joint_extrinsics: str | Path | None = None,
 ) -> RigCalibration:
-    """The rig from a VECtor calibration folder (module docstring); rig frame = ``cam0``."""
+    """The rig from a VECtor calibration folder (module docstring); rig frame = ``cam0``.
+
+    ``joint_extrinsics`` picks the joint extrinsics file (default: the folder's only
+    ``*joint*extrinsic*.yaml``)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileError(f"{folder}: calibration folder not found", path=str(folder))
@@ -141,7 +167,11 @@ def read_vector_calibration(
         k: read_ros_camera_yaml(_glob_one(folder, INTRINSICS_GLOBS[k], f"{k} intrinsics"))
         for k in CAMERA_KEYS
     }
-    ext_path = _glob_one(folder, EXTRINSICS_GLOB, "joint extrinsics")
+    ext_path = (
+        Path(joint_extrinsics)
+        if joint_extrinsics is not None
+        else _glob_one(folder, EXTRINSICS_GLOB, "joint extrinsics", "joint_extrinsics=")
+    )
     cam0_from = read_joint_extrinsics(ext_path)
     if sorted(camera_order) != sorted(CAMERA_KEYS):
         raise InputError(f"camera_order must be a permutation of {list(CAMERA_KEYS)}", field="camera_order")
@@ -159,19 +189,35 @@ def read_vector_calibration(
 
 
 def read_body_from_cam0(path: str | Path) -> SE3:
-    """``T_body_cam0`` (body_from_cam0) of a VECtor camera–body calibration YAML."""
+    """``body_from_cam0`` of a VECtor camera–body calibration YAML: ``cam0.T_body_cam`` or the
+    inverse of ``cam0.T_cam_body`` (the release's ``camera_mocap_extrinsic_results*.yaml``), or
+    a top-level ``T_body_cam0``."""
     path = Path(path)
     doc = load_yaml(path, "camera-body calibration")
-    return se3(get_key(doc, "T_body_cam0", path, ""), path, "T_body_cam0")
+    if "T_body_cam0" in doc:
+        return se3(doc["T_body_cam0"], path, "T_body_cam0")
+    cam0 = get_key(doc, "cam0", path, "")
+    if isinstance(cam0, dict) and "T_body_cam" in cam0:
+        return se3(cam0["T_body_cam"], path, "cam0.T_body_cam")
+    if isinstance(cam0, dict) and "T_cam_body" in cam0:
+        return se3(cam0["T_cam_body"], path, "cam0.T_cam_body").inverse()
+    raise ParseError(
+        f"{path}: cam0 has neither T_body_cam nor T_cam_body (and there is no T_body_cam0)",
+        path=str(path),
+        field="cam0.T_body_cam",
+    )
 
 
 def _calibration_folder(seq_dir: Path) -> Path:
-    for folder in (seq_dir, seq_dir / "calibration", seq_dir.parent, seq_dir.parent / "calibration"):
-        if folder.is_dir() and any(folder.glob(INTRINSICS_GLOBS["frame_left"])):
-            return folder
+    for base in (seq_dir, seq_dir.parent):
+        for sub in CALIBRATION_FOLDERS:
+            folder = base / sub if sub else base
+            if folder.is_dir() and any(folder.glob(INTRINSICS_GLOBS["frame_left"])):
+                return folder
     raise FileError(
         f"{seq_dir}: no VECtor calibration ({INTRINSICS_GLOBS['frame_left']}) in the folder, its "
-        "calibration/ or its parent; pass calibration=",
+        "calibration/ or 0_calib/, its parent or the parent's calibration/ or 0_calib/; pass "
+        "calibration=",
         path=str(seq_dir),
         field="calibration",
     )
@@ -220,6 +266,7 @@ def load_vector(
     body_from_cam0: str | Path | SE3 | None = None,
     camera_order: tuple[str, ...] = DEFAULT_ORDER,
     pair_tolerance_ns: int = 1_000_000,
+    joint_extrinsics: str | Path | None = None,
 ) -> Sequence:
     """Open a VECtor sequence folder (synced HDF5/PNG release).
 
@@ -238,6 +285,9 @@ def load_vector(
         The rig camera of cam0, cam1, cam2, cam3 in the joint extrinsics.
     pair_tolerance_ns
         Largest start-of-exposure difference of a left/right frame pair.
+    joint_extrinsics
+        The joint extrinsics file, when the calibration folder holds several (the release's
+        ``small_scale_...`` and ``large_scale_joint_camera_extrinsic_results.yaml``).
     """
     seq_dir = Path(path)
     if not seq_dir.is_dir():
@@ -248,7 +298,7 @@ def load_vector(
         rig = calibration
     else:
         calib_dir = Path(calibration) if calibration is not None else _calibration_folder(seq_dir)
-        rig = read_vector_calibration(calib_dir, camera_order)
+        rig = read_vector_calibration(calib_dir, camera_order, joint_extrinsics)
 
     times: dict[str, tuple[npt.NDArray[np.int64], npt.NDArray[np.int64]]] = {}
     images: dict[str, list[Path]] = {}
@@ -307,6 +357,14 @@ def _body_from_cam0(value: str | Path | SE3 | None, calib_dir: Path | None, gt_p
             found = sorted(calib_dir.glob(pattern))
             if len(found) == 1:
                 return read_body_from_cam0(found[0])
+            if len(found) > 1:
+                raise FileError(
+                    f"{calib_dir}: several camera-body calibrations match {pattern!r} ("
+                    f"{', '.join(p.name for p in found)}); pass body_from_cam0= (the file of "
+                    f"{gt_path.name}'s session)",
+                    path=str(calib_dir),
+                    field="T_body_cam0",
+                )
     raise FileError(
         f"{gt_path} holds body poses and needs the camera-body transform T_body_cam0: no "
         f"{' or '.join(BODY_GLOBS)} in the calibration folder; pass body_from_cam0=",

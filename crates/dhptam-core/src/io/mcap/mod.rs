@@ -11,7 +11,7 @@
 //! | topic | schema | content |
 //! |---|---|---|
 //! | `/events/{left,right}` | `dhptam.EventBatch` | fixed-size batches of events ([`schemas`]) |
-//! | `/frames/{left,right}` | `foxglove.RawImage` | `mono8` frames, logged at exposure start |
+//! | `/frames/{left,right}` | `foxglove.RawImage` or `foxglove.CompressedImage` | `mono8` frames (or lossless PNG), logged at exposure start |
 //! | `/calibration/<camera>` | `foxglove.CameraCalibration` | intrinsics of each camera |
 //! | `/ground_truth`, `/slam/...` | `foxglove.PoseInFrame` | `world_from_cam` poses |
 //! | `/slam/map` | `foxglove.PointCloud` | map points (`x, y, z` float32) |
@@ -31,7 +31,9 @@ pub mod writer;
 use std::path::Path;
 
 pub use reader::{LogReader, TopicInfo};
-pub use schemas::{CameraCalibration, EventColumns, PointCloud, PoseInFrame, RawImage, SchemaKind};
+pub use schemas::{
+    CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame, RawImage, SchemaKind,
+};
 pub use writer::{LogCompression, LogOptions, LogWriter};
 
 use crate::error::Error;

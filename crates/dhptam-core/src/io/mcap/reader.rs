@@ -5,18 +5,24 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 
 use ::mcap::records::ChunkIndex;
+use ::mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 use ::mcap::Summary;
 use memmap2::Mmap;
 use rayon::prelude::*;
 
 use super::schemas::{
-    decode_event_batch, CameraCalibration, EventColumns, PointCloud, PoseInFrame, RawImage,
-    SchemaKind,
+    decode_event_batch, CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame,
+    RawImage, SchemaKind,
 };
 use super::{mcap_error, BATCH_EVENTS_KEY, MESSAGE_ENCODING};
 use crate::error::{Error, Result};
 
 const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
+
+/// Longest record a chunk may hold, bytes (256 MiB): far above any dhptam message (a 4K RGB
+/// frame is 25 MB, an event batch 426 KiB), and the most a damaged length field can make the
+/// reader allocate.
+const MAX_RECORD_BYTES: usize = 256 << 20;
 
 /// Where one message lies: its chunk (index into the reader's chunk list) and log time.
 #[derive(Debug, Clone, Copy)]
@@ -79,6 +85,85 @@ fn format_error(path: &Path, field: &str, message: impl Into<String>) -> Error {
     }
 }
 
+/// For a chunk record stored without compression (`bytes`: opcode, length, chunk), the first
+/// record inside it whose length runs past the chunk's data, described; `None` when every
+/// record fits, or when the chunk is compressed or its header is malformed (the `mcap` crate
+/// reports those). The crate subtracts such a length from the bytes left without a check (an
+/// overflow panic in debug builds, a wrap-around in release ones), so it is caught here first.
+fn uncompressed_chunk_overrun(bytes: &[u8]) -> Option<String> {
+    let u32_at = |at: usize| -> Option<u32> {
+        Some(u32::from_le_bytes(bytes.get(at..at + 4)?.try_into().ok()?))
+    };
+    let u64_at = |at: usize| -> Option<u64> {
+        Some(u64::from_le_bytes(bytes.get(at..at + 8)?.try_into().ok()?))
+    };
+    // opcode (1) + record length (8), then start time, end time, uncompressed size (8 each),
+    // uncompressed CRC (4), the compression string (u32 length + bytes), compressed size (8).
+    let compression_len = u32_at(9 + 24 + 4)? as usize;
+    if compression_len != 0 {
+        return None;
+    }
+    let compressed_size = u64_at(9 + 24 + 4 + 4)?;
+    let data_start: usize = 9 + 24 + 4 + 4 + 8;
+    let data_end = data_start.checked_add(usize::try_from(compressed_size).ok()?)?;
+    let data = bytes.get(data_start..data_end)?;
+    let mut at = 0usize;
+    while at < data.len() {
+        let len = data
+            .get(at + 1..at + 9)
+            .and_then(|b| b.try_into().ok())
+            .map(u64::from_le_bytes);
+        let fits = len
+            .and_then(|len| usize::try_from(len).ok())
+            .and_then(|len| len.checked_add(9))
+            .filter(|&total| total <= data.len() - at);
+        match fits {
+            Some(total) => at += total,
+            None => {
+                return Some(format!(
+                    "the record at byte {at} of its {} data bytes is {} bytes long, past the \
+                     chunk's end",
+                    data.len(),
+                    len.map_or_else(|| "an unreadable number of".to_string(), |l| l.to_string())
+                ))
+            }
+        }
+    }
+    None
+}
+
+/// The same check as [`uncompressed_chunk_overrun`] for the chunk records the `mcap` crate's
+/// summary reader would meet: it reads every record from the footer's `summary_start` to the
+/// footer, so a damaged `summary_start` pointing into the data section hands it chunks.
+fn summary_chunk_overrun(map: &[u8]) -> Option<String> {
+    // The footer record (opcode, length 20, summary_start, summary_offset_start, CRC) ends
+    // just before the closing magic.
+    let footer = map.len().checked_sub(8 + 9 + 20)?;
+    let summary_start = u64::from_le_bytes(map.get(footer + 9..footer + 17)?.try_into().ok()?);
+    let mut at = usize::try_from(summary_start).ok()?;
+    if at == 0 {
+        return None;
+    }
+    while at < footer {
+        let opcode = *map.get(at)?;
+        let len = usize::try_from(u64::from_le_bytes(
+            map.get(at + 1..at + 9)?.try_into().ok()?,
+        ))
+        .ok()?;
+        let end = at.checked_add(9)?.checked_add(len)?;
+        let record = map.get(at..end)?;
+        if opcode == ::mcap::records::op::CHUNK {
+            if let Some(message) = uncompressed_chunk_overrun(record) {
+                return Some(format!(
+                    "chunk record at byte {at} of the summary section: {message}"
+                ));
+            }
+        }
+        at = end;
+    }
+    None
+}
+
 impl LogReader {
     /// Opens a log and reads its summary and indexes.
     pub fn open(path: impl AsRef<Path>) -> Result<Self> {
@@ -108,6 +193,9 @@ impl LogReader {
                 "magic",
                 "the file does not end with the MCAP magic bytes (truncated or still being written)",
             ));
+        }
+        if let Some(message) = summary_chunk_overrun(&map) {
+            return Err(format_error(&path, "summary", message));
         }
         let summary = Summary::read(&map)
             .map_err(|e| mcap_error(&path, "summary", e))?
@@ -272,25 +360,21 @@ impl LogReader {
             .map(|&(chunk, k0, first_rank, wanted)| {
                 // A chunk streams its records in offset order, so the channel's messages come
                 // by rank.
-                let stream = self
-                    .summary
-                    .stream_chunk(&self.map, &self.chunks[chunk])
-                    .map_err(|e| mcap_error(&self.path, &info.topic, e))?;
                 let mut out = Vec::with_capacity(wanted);
                 let mut rank = 0usize;
-                for message in stream {
-                    let message = message.map_err(|e| mcap_error(&self.path, &info.topic, e))?;
-                    if message.channel.id != info.channel_id {
-                        continue;
+                self.for_each_message(&self.chunks[chunk], &info.topic, |channel, data| {
+                    if channel != info.channel_id {
+                        return Ok(true);
                     }
                     if rank >= first_rank {
-                        out.push(f(k0 + rank - first_rank, &message.data)?);
+                        out.push(f(k0 + rank - first_rank, data)?);
                         if out.len() == wanted {
-                            break;
+                            return Ok(false);
                         }
                     }
                     rank += 1;
-                }
+                    Ok(true)
+                })?;
                 if out.len() != wanted {
                     return Err(format_error(
                         &self.path,
@@ -305,6 +389,82 @@ impl LogReader {
             })
             .collect::<Result<_>>()?;
         Ok(per_chunk.into_iter().flatten().collect())
+    }
+
+    /// Calls `visit(channel id, message data)` for the messages of a chunk in file order until
+    /// it returns `Ok(false)`.
+    ///
+    /// The chunk is streamed through the `mcap` crate's sans-io reader with a record length
+    /// limit: no record inside a chunk can be longer than the chunk's uncompressed size, and a
+    /// damaged length field must give an error, not an allocation of that size (the crate's
+    /// `Summary::stream_chunk` sets no limit; the `mcap` fuzz target found the abort).
+    fn for_each_message(
+        &self,
+        chunk: &ChunkIndex,
+        topic: &str,
+        mut visit: impl FnMut(u16, &[u8]) -> Result<bool>,
+    ) -> Result<()> {
+        let start = usize::try_from(chunk.chunk_start_offset).ok();
+        let end = chunk
+            .chunk_start_offset
+            .checked_add(chunk.chunk_length)
+            .and_then(|e| usize::try_from(e).ok());
+        let bytes = match (start, end) {
+            (Some(a), Some(b)) if a < b && b <= self.map.len() => &self.map[a..b],
+            _ => {
+                return Err(format_error(
+                    &self.path,
+                    topic,
+                    format!(
+                        "the index places a chunk at bytes {}..+{} of a {}-byte file",
+                        chunk.chunk_start_offset,
+                        chunk.chunk_length,
+                        self.map.len()
+                    ),
+                ))
+            }
+        };
+        if let Some(message) = uncompressed_chunk_overrun(bytes) {
+            return Err(format_error(
+                &self.path,
+                topic,
+                format!("chunk at byte {}: {message}", chunk.chunk_start_offset),
+            ));
+        }
+        let inner_limit = usize::try_from(chunk.uncompressed_size)
+            .unwrap_or(usize::MAX)
+            .min(MAX_RECORD_BYTES);
+        let options = LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_validate_chunk_crcs(true)
+            .with_record_length_limit(inner_limit.max(bytes.len()));
+        let mut reader = LinearReader::new_with_options(options);
+        let mut rest = bytes;
+        while let Some(event) = reader.next_event() {
+            match event.map_err(|e| mcap_error(&self.path, topic, e))? {
+                LinearReadEvent::ReadRequest(need) => {
+                    let n = need.min(rest.len());
+                    reader.insert(n).copy_from_slice(&rest[..n]);
+                    reader.notify_read(n);
+                    rest = &rest[n..];
+                }
+                LinearReadEvent::Record { data, opcode } => {
+                    if opcode != ::mcap::records::op::MESSAGE {
+                        continue;
+                    }
+                    if let ::mcap::records::Record::Message { header, data } =
+                        ::mcap::parse_record(opcode, data)
+                            .map_err(|e| mcap_error(&self.path, topic, e))?
+                    {
+                        if !visit(header.channel_id, &data)? {
+                            return Ok(());
+                        }
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     fn decode<T>(&self, topic: &str, k: usize, r: std::result::Result<T, String>) -> Result<T> {
@@ -326,6 +486,18 @@ impl LogReader {
         let info = self.topic(topic, SchemaKind::RawImage)?;
         self.read_messages(info, range.clone(), |k, data| {
             self.decode(topic, range.start + k, RawImage::decode(data))
+        })
+    }
+
+    /// Images `range` of a `foxglove.CompressedImage` channel (still compressed).
+    pub fn compressed_images(
+        &self,
+        topic: &str,
+        range: std::ops::Range<usize>,
+    ) -> Result<Vec<CompressedImage>> {
+        let info = self.topic(topic, SchemaKind::CompressedImage)?;
+        self.read_messages(info, range.clone(), |k, data| {
+            self.decode(topic, range.start + k, CompressedImage::decode(data))
         })
     }
 
@@ -378,6 +550,23 @@ impl LogReader {
                 t_last_ns: 0,
             });
         }
+        // Batches are found by a binary search over their log times: those must not decrease.
+        if let Some(b) = info
+            .locations
+            .windows(2)
+            .position(|w| w[1].log_time < w[0].log_time)
+        {
+            return Err(format_error(
+                &self.path,
+                topic,
+                format!(
+                    "event batch {} is logged at {} ns, before batch {b} ({} ns)",
+                    b + 1,
+                    info.locations[b + 1].log_time,
+                    info.locations[b].log_time
+                ),
+            ));
+        }
         let last = self.event_batches(topic, info, batch_events, n - 1..n)?;
         let last = last.into_iter().next().unwrap_or_default();
         let count = (n - 1) * batch_events + last.len();
@@ -421,6 +610,32 @@ impl LogReader {
                         } else {
                             format!("1..={batch_events}")
                         }
+                    ),
+                ));
+            }
+            // The index's log time is the batch's first event time (what the time searches
+            // rely on), and times never decrease inside a batch.
+            let log_time = info.locations[b].log_time;
+            let t = &batch.events.t_ns;
+            if u64::try_from(t[0]).ok() != Some(log_time) {
+                return Err(format_error(
+                    &self.path,
+                    topic,
+                    format!(
+                        "event batch {b} is logged at {log_time} ns but its first event is at {} ns",
+                        t[0]
+                    ),
+                ));
+            }
+            if let Some(k) = t.windows(2).position(|w| w[1] < w[0]) {
+                return Err(format_error(
+                    &self.path,
+                    topic,
+                    format!(
+                        "event batch {b}: times decrease at event {} ({} ns after {} ns)",
+                        b * batch_events + k + 1,
+                        t[k + 1],
+                        t[k]
                     ),
                 ));
             }

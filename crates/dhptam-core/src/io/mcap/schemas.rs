@@ -1,4 +1,4 @@
-//! The messages of a dhptam log: four Foxglove schemas and dhptam's own event batch, with
+//! The messages of a dhptam log: five Foxglove schemas and dhptam's own event batch, with
 //! their protobuf encoders, decoders and `FileDescriptorSet`s.
 //!
 //! The Foxglove definitions mirror the published `foxglove/*.proto` files field for field (same
@@ -24,151 +24,168 @@
 
 use super::proto::{self, file_descriptor_set, Dec, Enc, FieldDef, FileDef, MessageDef, Ty, Val};
 
-const fn field(name: &'static str, number: u32, ty: Ty) -> FieldDef {
+/// A field definition; the helpers below name the four shapes the schemas use.
+const fn def(
+    name: &'static str,
+    number: u32,
+    ty: Ty,
+    repeated: bool,
+    type_name: &'static str,
+) -> FieldDef {
     FieldDef {
         name,
         number,
         ty,
-        repeated: false,
-        type_name: "",
-    }
-}
-
-const fn repeated(name: &'static str, number: u32, ty: Ty) -> FieldDef {
-    FieldDef {
-        name,
-        number,
-        ty,
-        repeated: true,
-        type_name: "",
-    }
-}
-
-const fn sub(name: &'static str, number: u32, type_name: &'static str) -> FieldDef {
-    FieldDef {
-        name,
-        number,
-        ty: Ty::Message,
-        repeated: false,
+        repeated,
         type_name,
     }
 }
 
-const TIMESTAMP: FileDef = FileDef {
-    name: "google/protobuf/timestamp.proto",
-    package: "google.protobuf",
-    deps: &[],
-    messages: &[MessageDef {
-        name: "Timestamp",
-        fields: &[field("seconds", 1, Ty::Int64), field("nanos", 2, Ty::Int32)],
-        enums: &[],
-    }],
-};
+/// A singular scalar field.
+const fn field(name: &'static str, number: u32, ty: Ty) -> FieldDef {
+    def(name, number, ty, false, "")
+}
+
+/// A repeated scalar field.
+const fn repeated(name: &'static str, number: u32, ty: Ty) -> FieldDef {
+    def(name, number, ty, true, "")
+}
+
+/// A singular message field of type `type_name` (fully qualified, `.foxglove.Pose`).
+const fn sub(name: &'static str, number: u32, type_name: &'static str) -> FieldDef {
+    def(name, number, Ty::Message, false, type_name)
+}
+
+/// A `.proto` file defining one message without nested enums (every file but
+/// `PackedElementField.proto`): `proto_file!(file, package, [imports], Message, [fields])`.
+/// A macro rather than a `const fn` so that the nested slices stay `'static` literals.
+macro_rules! proto_file {
+    ($file:expr, $package:expr, [$($dep:expr),* $(,)?], $message:expr, [$($field:expr),* $(,)?]) => {
+        FileDef {
+            name: $file,
+            package: $package,
+            deps: &[$($dep),*],
+            messages: &[MessageDef {
+                name: $message,
+                fields: &[$($field),*],
+                enums: &[],
+            }],
+        }
+    };
+}
+
 const TS_DEP: &str = "google/protobuf/timestamp.proto";
 const TS: &str = ".google.protobuf.Timestamp";
+const POSE_DEP: &str = "foxglove/Pose.proto";
+const POSE_TYPE: &str = ".foxglove.Pose";
 
-const VECTOR3: FileDef = FileDef {
-    name: "foxglove/Vector3.proto",
-    package: "foxglove",
-    deps: &[],
-    messages: &[MessageDef {
-        name: "Vector3",
-        fields: &[
-            field("x", 1, Ty::Double),
-            field("y", 2, Ty::Double),
-            field("z", 3, Ty::Double),
-        ],
-        enums: &[],
-    }],
-};
+const TIMESTAMP: FileDef = proto_file!(
+    TS_DEP,
+    "google.protobuf",
+    [],
+    "Timestamp",
+    [field("seconds", 1, Ty::Int64), field("nanos", 2, Ty::Int32)]
+);
 
-const QUATERNION: FileDef = FileDef {
-    name: "foxglove/Quaternion.proto",
-    package: "foxglove",
-    deps: &[],
-    messages: &[MessageDef {
-        name: "Quaternion",
-        fields: &[
-            field("x", 1, Ty::Double),
-            field("y", 2, Ty::Double),
-            field("z", 3, Ty::Double),
-            field("w", 4, Ty::Double),
-        ],
-        enums: &[],
-    }],
-};
+const VECTOR3: FileDef = proto_file!(
+    "foxglove/Vector3.proto",
+    "foxglove",
+    [],
+    "Vector3",
+    [
+        field("x", 1, Ty::Double),
+        field("y", 2, Ty::Double),
+        field("z", 3, Ty::Double),
+    ]
+);
 
-const POSE: FileDef = FileDef {
-    name: "foxglove/Pose.proto",
-    package: "foxglove",
-    deps: &["foxglove/Quaternion.proto", "foxglove/Vector3.proto"],
-    messages: &[MessageDef {
-        name: "Pose",
-        fields: &[
-            sub("position", 1, ".foxglove.Vector3"),
-            sub("orientation", 2, ".foxglove.Quaternion"),
-        ],
-        enums: &[],
-    }],
-};
+const QUATERNION: FileDef = proto_file!(
+    "foxglove/Quaternion.proto",
+    "foxglove",
+    [],
+    "Quaternion",
+    [
+        field("x", 1, Ty::Double),
+        field("y", 2, Ty::Double),
+        field("z", 3, Ty::Double),
+        field("w", 4, Ty::Double),
+    ]
+);
 
-const POSE_IN_FRAME: FileDef = FileDef {
-    name: "foxglove/PoseInFrame.proto",
-    package: "foxglove",
-    deps: &["foxglove/Pose.proto", TS_DEP],
-    messages: &[MessageDef {
-        name: "PoseInFrame",
-        fields: &[
-            sub("timestamp", 1, TS),
-            field("frame_id", 2, Ty::String),
-            sub("pose", 3, ".foxglove.Pose"),
-        ],
-        enums: &[],
-    }],
-};
+const POSE: FileDef = proto_file!(
+    POSE_DEP,
+    "foxglove",
+    ["foxglove/Quaternion.proto", "foxglove/Vector3.proto"],
+    "Pose",
+    [
+        sub("position", 1, ".foxglove.Vector3"),
+        sub("orientation", 2, ".foxglove.Quaternion"),
+    ]
+);
 
-const RAW_IMAGE: FileDef = FileDef {
-    name: "foxglove/RawImage.proto",
-    package: "foxglove",
-    deps: &[TS_DEP],
-    messages: &[MessageDef {
-        name: "RawImage",
-        fields: &[
-            sub("timestamp", 1, TS),
-            field("frame_id", 7, Ty::String),
-            field("width", 2, Ty::Fixed32),
-            field("height", 3, Ty::Fixed32),
-            field("encoding", 4, Ty::String),
-            field("step", 5, Ty::Fixed32),
-            field("data", 6, Ty::Bytes),
-        ],
-        enums: &[],
-    }],
-};
+const POSE_IN_FRAME: FileDef = proto_file!(
+    "foxglove/PoseInFrame.proto",
+    "foxglove",
+    [POSE_DEP, TS_DEP],
+    "PoseInFrame",
+    [
+        sub("timestamp", 1, TS),
+        field("frame_id", 2, Ty::String),
+        sub("pose", 3, POSE_TYPE),
+    ]
+);
 
-const CAMERA_CALIBRATION: FileDef = FileDef {
-    name: "foxglove/CameraCalibration.proto",
-    package: "foxglove",
-    deps: &[TS_DEP],
-    messages: &[MessageDef {
-        name: "CameraCalibration",
-        fields: &[
-            sub("timestamp", 1, TS),
-            field("frame_id", 9, Ty::String),
-            field("width", 2, Ty::Fixed32),
-            field("height", 3, Ty::Fixed32),
-            field("distortion_model", 4, Ty::String),
-            repeated("D", 5, Ty::Double),
-            repeated("K", 6, Ty::Double),
-            repeated("R", 7, Ty::Double),
-            repeated("P", 8, Ty::Double),
-        ],
-        enums: &[],
-    }],
-};
+const RAW_IMAGE: FileDef = proto_file!(
+    "foxglove/RawImage.proto",
+    "foxglove",
+    [TS_DEP],
+    "RawImage",
+    [
+        sub("timestamp", 1, TS),
+        field("frame_id", 7, Ty::String),
+        field("width", 2, Ty::Fixed32),
+        field("height", 3, Ty::Fixed32),
+        field("encoding", 4, Ty::String),
+        field("step", 5, Ty::Fixed32),
+        field("data", 6, Ty::Bytes),
+    ]
+);
+
+const COMPRESSED_IMAGE: FileDef = proto_file!(
+    "foxglove/CompressedImage.proto",
+    "foxglove",
+    [TS_DEP],
+    "CompressedImage",
+    [
+        sub("timestamp", 1, TS),
+        field("frame_id", 4, Ty::String),
+        field("data", 2, Ty::Bytes),
+        field("format", 3, Ty::String),
+    ]
+);
+
+const CAMERA_CALIBRATION: FileDef = proto_file!(
+    "foxglove/CameraCalibration.proto",
+    "foxglove",
+    [TS_DEP],
+    "CameraCalibration",
+    [
+        sub("timestamp", 1, TS),
+        field("frame_id", 9, Ty::String),
+        field("width", 2, Ty::Fixed32),
+        field("height", 3, Ty::Fixed32),
+        field("distortion_model", 4, Ty::String),
+        repeated("D", 5, Ty::Double),
+        repeated("K", 6, Ty::Double),
+        repeated("R", 7, Ty::Double),
+        repeated("P", 8, Ty::Double),
+    ]
+);
+
+const PACKED_ELEMENT_FIELD_DEP: &str = "foxglove/PackedElementField.proto";
 
 const PACKED_ELEMENT_FIELD: FileDef = FileDef {
-    name: "foxglove/PackedElementField.proto",
+    name: PACKED_ELEMENT_FIELD_DEP,
     package: "foxglove",
     deps: &[],
     messages: &[MessageDef {
@@ -176,13 +193,13 @@ const PACKED_ELEMENT_FIELD: FileDef = FileDef {
         fields: &[
             field("name", 1, Ty::String),
             field("offset", 2, Ty::Fixed32),
-            FieldDef {
-                name: "type",
-                number: 3,
-                ty: Ty::Enum,
-                repeated: false,
-                type_name: ".foxglove.PackedElementField.NumericType",
-            },
+            def(
+                "type",
+                3,
+                Ty::Enum,
+                false,
+                ".foxglove.PackedElementField.NumericType",
+            ),
         ],
         enums: &[(
             "NumericType",
@@ -202,53 +219,79 @@ const PACKED_ELEMENT_FIELD: FileDef = FileDef {
 };
 const FLOAT32: u64 = 7;
 
-const POINT_CLOUD: FileDef = FileDef {
-    name: "foxglove/PointCloud.proto",
-    package: "foxglove",
-    deps: &[
-        "foxglove/PackedElementField.proto",
-        "foxglove/Pose.proto",
-        TS_DEP,
-    ],
-    messages: &[MessageDef {
-        name: "PointCloud",
-        fields: &[
-            sub("timestamp", 1, TS),
-            field("frame_id", 2, Ty::String),
-            sub("pose", 3, ".foxglove.Pose"),
-            field("point_stride", 4, Ty::Fixed32),
-            FieldDef {
-                name: "fields",
-                number: 5,
-                ty: Ty::Message,
-                repeated: true,
-                type_name: ".foxglove.PackedElementField",
-            },
-            field("data", 6, Ty::Bytes),
-        ],
-        enums: &[],
-    }],
-};
+const POINT_CLOUD: FileDef = proto_file!(
+    "foxglove/PointCloud.proto",
+    "foxglove",
+    [PACKED_ELEMENT_FIELD_DEP, POSE_DEP, TS_DEP],
+    "PointCloud",
+    [
+        sub("timestamp", 1, TS),
+        field("frame_id", 2, Ty::String),
+        sub("pose", 3, POSE_TYPE),
+        field("point_stride", 4, Ty::Fixed32),
+        def(
+            "fields",
+            5,
+            Ty::Message,
+            true,
+            ".foxglove.PackedElementField"
+        ),
+        field("data", 6, Ty::Bytes),
+    ]
+);
 
-const EVENT_BATCH: FileDef = FileDef {
-    name: "dhptam/EventBatch.proto",
-    package: "dhptam",
-    deps: &[TS_DEP],
-    messages: &[MessageDef {
-        name: "EventBatch",
-        fields: &[
-            sub("timestamp", 1, TS),
-            field("frame_id", 2, Ty::String),
-            field("count", 3, Ty::Uint32),
-            field("x", 4, Ty::Bytes),
-            field("y", 5, Ty::Bytes),
-            field("t_ns", 6, Ty::Bytes),
-            field("p", 7, Ty::Bytes),
-            field("first_index", 8, Ty::Uint64),
-        ],
-        enums: &[],
-    }],
-};
+const EVENT_BATCH: FileDef = proto_file!(
+    "dhptam/EventBatch.proto",
+    "dhptam",
+    [TS_DEP],
+    "EventBatch",
+    [
+        sub("timestamp", 1, TS),
+        field("frame_id", 2, Ty::String),
+        field("count", 3, Ty::Uint32),
+        field("x", 4, Ty::Bytes),
+        field("y", 5, Ty::Bytes),
+        field("t_ns", 6, Ty::Bytes),
+        field("p", 7, Ty::Bytes),
+        field("first_index", 8, Ty::Uint64),
+    ]
+);
+
+/// Every `.proto` file the schemas use; a schema's descriptor set is its file plus the files
+/// it imports, found here by name.
+const FILES: [&FileDef; 11] = [
+    &TIMESTAMP,
+    &VECTOR3,
+    &QUATERNION,
+    &POSE,
+    &POSE_IN_FRAME,
+    &RAW_IMAGE,
+    &COMPRESSED_IMAGE,
+    &CAMERA_CALIBRATION,
+    &PACKED_ELEMENT_FIELD,
+    &POINT_CLOUD,
+    &EVENT_BATCH,
+];
+
+/// `root` and everything it imports, each file after its imports (what a
+/// `FileDescriptorSet` reader expects), each once.
+fn with_imports(root: &'static FileDef) -> Vec<&'static FileDef> {
+    fn visit(file: &'static FileDef, out: &mut Vec<&'static FileDef>) {
+        if out.iter().any(|f| f.name == file.name) {
+            return;
+        }
+        for dep in file.deps {
+            // Every import names a file of `FILES` (checked by a test).
+            if let Some(d) = FILES.iter().find(|f| f.name == *dep) {
+                visit(d, out);
+            }
+        }
+        out.push(file);
+    }
+    let mut out = Vec::new();
+    visit(root, &mut out);
+    out
+}
 
 /// The schemas a dhptam log uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -257,6 +300,8 @@ pub enum SchemaKind {
     EventBatch,
     /// `foxglove.RawImage`.
     RawImage,
+    /// `foxglove.CompressedImage` (PNG or JPEG bytes).
+    CompressedImage,
     /// `foxglove.CameraCalibration`.
     CameraCalibration,
     /// `foxglove.PoseInFrame`.
@@ -267,9 +312,10 @@ pub enum SchemaKind {
 
 impl SchemaKind {
     /// Every schema, in a fixed order.
-    pub const ALL: [SchemaKind; 5] = [
+    pub const ALL: [SchemaKind; 6] = [
         SchemaKind::EventBatch,
         SchemaKind::RawImage,
+        SchemaKind::CompressedImage,
         SchemaKind::CameraCalibration,
         SchemaKind::PoseInFrame,
         SchemaKind::PointCloud,
@@ -280,6 +326,7 @@ impl SchemaKind {
         match self {
             SchemaKind::EventBatch => "dhptam.EventBatch",
             SchemaKind::RawImage => "foxglove.RawImage",
+            SchemaKind::CompressedImage => "foxglove.CompressedImage",
             SchemaKind::CameraCalibration => "foxglove.CameraCalibration",
             SchemaKind::PoseInFrame => "foxglove.PoseInFrame",
             SchemaKind::PointCloud => "foxglove.PointCloud",
@@ -291,25 +338,21 @@ impl SchemaKind {
         Self::ALL.into_iter().find(|k| k.name() == name)
     }
 
-    /// The serialized `FileDescriptorSet` (the file and its imports, imports first).
+    /// The `.proto` file defining the schema.
+    fn file(self) -> &'static FileDef {
+        match self {
+            SchemaKind::EventBatch => &EVENT_BATCH,
+            SchemaKind::RawImage => &RAW_IMAGE,
+            SchemaKind::CompressedImage => &COMPRESSED_IMAGE,
+            SchemaKind::CameraCalibration => &CAMERA_CALIBRATION,
+            SchemaKind::PoseInFrame => &POSE_IN_FRAME,
+            SchemaKind::PointCloud => &POINT_CLOUD,
+        }
+    }
+
+    /// The serialized `FileDescriptorSet`: the schema's file and its imports, imports first.
     pub fn descriptor_set(self) -> Vec<u8> {
-        let files: Vec<&FileDef> = match self {
-            SchemaKind::EventBatch => vec![&TIMESTAMP, &EVENT_BATCH],
-            SchemaKind::RawImage => vec![&TIMESTAMP, &RAW_IMAGE],
-            SchemaKind::CameraCalibration => vec![&TIMESTAMP, &CAMERA_CALIBRATION],
-            SchemaKind::PoseInFrame => {
-                vec![&TIMESTAMP, &VECTOR3, &QUATERNION, &POSE, &POSE_IN_FRAME]
-            }
-            SchemaKind::PointCloud => vec![
-                &TIMESTAMP,
-                &VECTOR3,
-                &QUATERNION,
-                &POSE,
-                &PACKED_ELEMENT_FIELD,
-                &POINT_CLOUD,
-            ],
-        };
-        file_descriptor_set(&files)
+        file_descriptor_set(&with_imports(self.file()))
     }
 }
 
@@ -337,18 +380,19 @@ fn read_timestamp(val: Val<'_>) -> DecResult<i64> {
         .ok_or_else(|| "timestamp overflows int64 nanoseconds".to_string())
 }
 
+/// A message of doubles numbered 1, 2, ... (`foxglove.Vector3`, `foxglove.Quaternion`).
+fn doubles_message(values: &[f64]) -> Enc {
+    let mut e = Enc::default();
+    for (i, x) in values.iter().enumerate() {
+        e.double(i as u32 + 1, *x);
+    }
+    e
+}
+
 fn pose(translation: &[f64; 3], quat_xyzw: &[f64; 4]) -> Enc {
-    let mut v = Enc::default();
-    for (i, x) in translation.iter().enumerate() {
-        v.double(i as u32 + 1, *x);
-    }
-    let mut q = Enc::default();
-    for (i, x) in quat_xyzw.iter().enumerate() {
-        q.double(i as u32 + 1, *x);
-    }
     let mut p = Enc::default();
-    p.message(1, &v);
-    p.message(2, &q);
+    p.message(1, &doubles_message(translation));
+    p.message(2, &doubles_message(quat_xyzw));
     p
 }
 
@@ -424,6 +468,50 @@ impl RawImage {
                 5 => m.step = proto::number(v)? as u32,
                 6 => m.data = proto::bytes(v)?.to_vec(),
                 7 => m.frame_id = proto::string(v)?,
+                _ => {}
+            }
+        }
+        Ok(m)
+    }
+}
+
+/// `foxglove.CompressedImage`: an image in a compressed file format; `t_ns` is its timestamp.
+///
+/// dhptam writes lossless PNG (`format = "png"`); the reader accepts whatever `format` says and
+/// leaves the decoding to the caller (the Python side decodes PNG and JPEG with OpenCV).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct CompressedImage {
+    /// Timestamp, ns.
+    pub t_ns: i64,
+    /// Coordinate frame of the camera (`frame_left`, ...).
+    pub frame_id: String,
+    /// The image file's bytes.
+    pub data: Vec<u8>,
+    /// Image format: `png`, `jpeg` or `webp` (Foxglove's names).
+    pub format: String,
+}
+
+impl CompressedImage {
+    /// Protobuf encoding.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut e = Enc::with_capacity(self.data.len() + 64);
+        e.message(1, &timestamp(self.t_ns));
+        e.bytes(2, &self.data);
+        e.bytes(3, self.format.as_bytes());
+        e.bytes(4, self.frame_id.as_bytes());
+        e.buf
+    }
+
+    /// Decodes a protobuf-encoded message.
+    pub fn decode(buf: &[u8]) -> DecResult<Self> {
+        let mut m = CompressedImage::default();
+        let mut d = Dec::new(buf);
+        while let Some((f, v)) = d.next_field()? {
+            match f {
+                1 => m.t_ns = read_timestamp(v)?,
+                2 => m.data = proto::bytes(v)?.to_vec(),
+                3 => m.format = proto::string(v)?,
+                4 => m.frame_id = proto::string(v)?,
                 _ => {}
             }
         }
@@ -747,6 +835,13 @@ mod tests {
             data: vec![1, 2, 3, 4, 5, 6],
         };
         assert_eq!(RawImage::decode(&img.encode()).unwrap(), img);
+        let png = CompressedImage {
+            t_ns: 42,
+            frame_id: "frame_right".into(),
+            data: b"\x89PNG\r\n\x1a\n...".to_vec(),
+            format: "png".into(),
+        };
+        assert_eq!(CompressedImage::decode(&png.encode()).unwrap(), png);
         let cal = CameraCalibration {
             t_ns: 7,
             frame_id: "a".into(),
@@ -785,5 +880,43 @@ mod tests {
             assert_eq!(SchemaKind::from_name(kind.name()), Some(kind));
             assert!(kind.descriptor_set().len() > 50);
         }
+    }
+
+    #[test]
+    fn every_import_is_a_known_file_listed_before_its_importer() {
+        for file in FILES {
+            for dep in file.deps {
+                assert!(
+                    FILES.iter().any(|f| f.name == *dep),
+                    "{} imports unknown {dep}",
+                    file.name
+                );
+            }
+        }
+        for kind in SchemaKind::ALL {
+            let files = with_imports(kind.file());
+            let names: Vec<&str> = files.iter().map(|f| f.name).collect();
+            assert_eq!(names.last(), Some(&kind.file().name));
+            for (i, f) in files.iter().enumerate() {
+                assert_eq!(names.iter().filter(|n| **n == f.name).count(), 1);
+                for dep in f.deps {
+                    let at = names.iter().position(|n| n == dep);
+                    assert!(at.is_some_and(|j| j < i), "{dep} must precede {}", f.name);
+                }
+            }
+        }
+        // PointCloud needs every Foxglove file of a pose plus its own field type.
+        let names: Vec<&str> = with_imports(&POINT_CLOUD).iter().map(|f| f.name).collect();
+        assert_eq!(
+            names,
+            [
+                "foxglove/PackedElementField.proto",
+                "foxglove/Quaternion.proto",
+                "foxglove/Vector3.proto",
+                "foxglove/Pose.proto",
+                "google/protobuf/timestamp.proto",
+                "foxglove/PointCloud.proto",
+            ]
+        );
     }
 }

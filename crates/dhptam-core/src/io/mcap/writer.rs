@@ -9,8 +9,8 @@ use ::mcap::records::{MessageHeader, Metadata};
 use ::mcap::{Compression, WriteOptions, Writer};
 
 use super::schemas::{
-    encode_event_batch, CameraCalibration, EventColumns, PointCloud, PoseInFrame, RawImage,
-    SchemaKind,
+    encode_event_batch, CameraCalibration, CompressedImage, EventColumns, PointCloud, PoseInFrame,
+    RawImage, SchemaKind,
 };
 use super::{mcap_error, BATCH_EVENTS_KEY, MESSAGE_ENCODING, PROFILE};
 use crate::error::{Error, Result};
@@ -228,6 +228,24 @@ impl LogWriter {
             ));
         }
         self.write(topic, SchemaKind::RawImage, image.t_ns, &image.encode())
+    }
+
+    /// Writes a `foxglove.CompressedImage` (PNG or JPEG bytes, not checked) on `topic`, logged
+    /// at the image's time.
+    pub fn add_compressed_image(&mut self, topic: &str, image: &CompressedImage) -> Result<()> {
+        if image.data.is_empty() || image.format.is_empty() {
+            return Err(Error::invalid(
+                format!("{topic} compressed image"),
+                "non-empty data and format",
+                format!("{} bytes of format {:?}", image.data.len(), image.format),
+            ));
+        }
+        self.write(
+            topic,
+            SchemaKind::CompressedImage,
+            image.t_ns,
+            &image.encode(),
+        )
     }
 
     /// Writes a `foxglove.CameraCalibration` on `topic`.
