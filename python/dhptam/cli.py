@@ -300,6 +300,8 @@ def _run_command(args: argparse.Namespace) -> int:
     sys.stdout.write(
         f"{result.out}: {result.frames} frames ({states}) in {result.seconds:.1f} s ({result.fps:.1f} fps), "
         f"{result.keyframes} keyframes, {result.map_points} map points, {result.loop_closures} loop closures"
+        # Issue 8 (accuracy): how the map stayed in one piece across fusion-mode switches.
+        + f", {result.tracking.get('bridges', 0)} bridge keyframes, {result.tracking.get('segments', 0)} new map segments"
         + (" [interrupted]" if result.interrupted else "")
         + "\n"
     )
