@@ -68,7 +68,8 @@ def main() -> int:
                         sequence, out, mode=mode, features=args.features, config=config,
                         progress=False, threaded=backend == "threaded",
                     )  # fmt: skip
-                    ev = evaluate(load_trajectory(result.files["trajectory_frame_left"]), reference, align="se3")
+                    estimate = load_trajectory(result.files["trajectory_frame_left"])
+                    ev = evaluate(estimate, reference, align="se3")
                     write_result(ev, out, name="eval")
                     t = result.tracking
                     shown = ("on" if bridge else "off") if mode == "fusion" else "–"

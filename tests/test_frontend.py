@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 from pathlib import Path
 
@@ -227,7 +228,7 @@ def test_bridge_images_blend_the_usable_frame_with_the_neighbours_beta(sequence)
     frontend = Frontend(sequence, "fusion", prefetch=0)
     frames = [frontend.process(k) for k in range(len(frontend))]
     switches = {"in": 0, "out": 0}
-    for previous, current in zip(frames, frames[1:], strict=False):
+    for previous, current in itertools.pairwise(frames):
         bridge = frontend.bridge_images(previous, current)
         if previous.bias == current.bias:
             assert bridge is None, current.index
@@ -237,13 +238,15 @@ def test_bridge_images_blend_the_usable_frame_with_the_neighbours_beta(sequence)
         switches["in" if source is previous else "out"] += 1
         assert (bridge.index, bridge.t_ns, bridge.bias) == (source.index, source.t_ns, neighbour.bias)
         assert bridge.beta_left == neighbour.beta_left and bridge.beta_right == neighbour.beta_right
-        assert np.array_equal(bridge.left, fuse(source.frame_left, source.events_left, neighbour.beta_left))
-        assert np.array_equal(bridge.right, fuse(source.frame_right, source.events_right, neighbour.beta_right))
+        for side in ("left", "right"):
+            beta = getattr(neighbour, f"beta_{side}")
+            expected = fuse(getattr(source, f"frame_{side}"), getattr(source, f"events_{side}"), beta)
+            assert np.array_equal(getattr(bridge, side), expected), side
         assert not np.array_equal(bridge.left, source.left)
     assert switches["in"] >= 1 and switches["out"] >= 1, switches
     # Switched off, or outside the fusion mode: no bridge.
     off = Frontend(sequence, "fusion", _core.Config.from_toml("[fusion]\nbridge = false"), prefetch=0)
-    pair = next((a, b) for a, b in zip(frames, frames[1:], strict=False) if a.bias != b.bias)
+    pair = next((a, b) for a, b in itertools.pairwise(frames) if a.bias != b.bias)
     assert off.bridge_images(*pair) is None
     events = Frontend(sequence, "events", prefetch=0)
     assert events.bridge_images(events.process(pair[0].index), events.process(pair[1].index)) is None

@@ -218,6 +218,6 @@ def test_bridge_is_refused_unless_it_is_the_last_tracked_frame() -> None:
         system.track(f.t_ns, f.left, f.right)
     assert system.bridge(frames[1].t_ns, (f0.left, f0.right), (f0.left, f0.right)) is None
     assert system.tracking_totals()["bridges_refused"] == 2
+    bad = type(f0.left)(np.zeros((3, 3), np.float32), f0.left.descriptors[:3])
     with pytest.raises(dhptam.DhptamError, match="keypoints"):
-        bad = type(f0.left)(np.zeros((3, 3), np.float32), f0.left.descriptors[:3])
         system.bridge(frames[2].t_ns, (bad, f0.right), (f0.left, f0.right))

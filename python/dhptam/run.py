@@ -478,8 +478,8 @@ def run(
             "done: %d frames in %.1f s (%.1f fps), states %s, %d keyframes, %d map points, %d loops, "
             "%d bridges (%d refused), %d new map segments",
             result.frames, result.seconds, result.fps, dict(states), result.keyframes, result.map_points,
-            result.loop_closures, result.tracking.get("bridges", 0), result.tracking.get("bridges_refused", 0),
-            result.tracking.get("segments", 0),
+            result.loop_closures, result.tracking.get("bridges", 0),
+            result.tracking.get("bridges_refused", 0), result.tracking.get("segments", 0),
         )  # fmt: skip
         return result
 
@@ -667,4 +667,3 @@ def _track_bridged(
         b = system.bridge(frame.t_ns, other, features)
         return r, "refused" if b is None else "inserted"
     return system.track(frame.t_ns, *features), "none"
-
