@@ -136,3 +136,43 @@ def test_demo_writes_the_table_and_the_report(
     assert png.startswith(b"\x89PNG")
     assert "report:" in capsys.readouterr().out
     assert np.isfinite(rows[0].evaluation.ate_rmse_m)
+
+
+class _RecordingSystem:
+    """Records the track/bridge calls of the run loop."""
+
+    def __init__(self, refuse: bool = False) -> None:
+        self.calls: list[tuple[Any, ...]] = []
+        self.refuse = refuse
+
+    def track(self, t_ns: int, left: Any, right: Any) -> Any:
+        self.calls.append(("track", t_ns, left, right))
+        return type("R", (), {"state": "ok"})()
+
+    def bridge(self, t_ns: int, primary: Any, other: Any) -> Any:
+        self.calls.append(("bridge", t_ns, primary, other))
+        return None if self.refuse else object()
+
+
+def test_the_run_loop_bridges_entering_before_and_leaving_after_tracking() -> None:
+    from types import SimpleNamespace
+
+    from dhptam.run import _track_bridged
+
+    frame = SimpleNamespace(index=5, t_ns=500)
+    own, previous_own, other = ("L5", "R5"), ("L4", "R4"), ("oL", "oR")
+    # No switch: plain tracking.
+    s = _RecordingSystem()
+    assert _track_bridged(s, frame, own, None, (4, previous_own))[1] == "none"
+    assert s.calls == [("track", 500, "L5", "R5")]
+    # Entering (the bridge renders frame 4): frame 4 is bridged with the features it was
+    # tracked with, then frame 5 is tracked with its own.
+    s = _RecordingSystem()
+    entering = (SimpleNamespace(index=4, t_ns=400), other)
+    assert _track_bridged(s, frame, own, entering, (4, previous_own))[1] == "inserted"
+    assert s.calls == [("bridge", 400, previous_own, other), ("track", 500, "L5", "R5")]
+    # Leaving (the bridge renders frame 5 the old way): tracked with that, then bridged to its own.
+    s = _RecordingSystem(refuse=True)
+    leaving = (SimpleNamespace(index=5, t_ns=500), other)
+    assert _track_bridged(s, frame, own, leaving, (4, previous_own))[1] == "refused"
+    assert s.calls == [("track", 500, "oL", "oR"), ("bridge", 500, other, own)]

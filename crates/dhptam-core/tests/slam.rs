@@ -668,7 +668,9 @@ fn run_with_switches(
         let r = if bridge && i == switched.end {
             // Leaving: track the rendering that matches the map, then bridge to the real one.
             let r = track(&mut system, &other);
-            let b = system.bridge(f.t_ns, features(&other), features(f)).unwrap();
+            let b = system
+                .bridge(f.t_ns, features(&other), features(f))
+                .unwrap();
             assert!(b.is_some(), "bridge out refused at frame {i}");
             r
         } else if switched.contains(&i) {
