@@ -255,13 +255,8 @@ config_section! {
     TrackingConfig {
         /// Rectified stereo matches may differ in row by at most this, pixels.
         stereo_row_px: f64 = 2.0,
-        /// Descriptor ratio test: best distance < ratio × second best (1 turns it off), for
-        /// every descriptor match of the back-end (stereo, local-map search, duplicate fusion
-        /// and re-finding, loop and relocalisation verification). 0.8 is Lowe's value and
-        /// ORB-SLAM's for its local-map search; 0.9 let ambiguous matches through on the
-        /// repetitive edges of event-dominated images (issue 8: fusion ATE on the HDR demo
-        /// 3.65 / 4.40 % → 2.11 / 2.24 % of the path, seeds 0 / 2; docs/BENCHMARKS.md).
-        ratio: f64 = 0.8,
+        /// Descriptor ratio test: best distance < ratio × second best (1 turns it off).
+        ratio: f64 = 0.9,
         /// Largest descriptor distance of a match; 0 uses the descriptor kind's default
         /// (L2 in [0, 2] for unit float descriptors, Hamming bits for binary ones).
         max_descriptor_distance: f64 = 0.0,
