@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import threading
 from pathlib import Path
 
@@ -216,3 +217,36 @@ def test_auto_plane_depth_is_the_median_scene_depth(sequence) -> None:  # type: 
     assert Frontend(sequence, "fusion").plane_depth_m == 0.0  # the config's default: infinity
     with pytest.raises(InputError, match="plane_depth"):
         Frontend(sequence, "fusion", plane_depth="near")
+
+
+def test_bridge_images_blend_the_usable_frame_with_the_neighbours_beta(sequence) -> None:  # type: ignore[no-untyped-def]
+    """Issue 8: at every APS↔DVS switch of the HDR profile the bridge renders the APS-biased
+    frame of the pair (the previous one entering a dark/bright segment, the current one
+    leaving it) with the other frame's β; between frames of one mode there is none."""
+    from dhptam.fusion import fuse
+
+    frontend = Frontend(sequence, "fusion", prefetch=0)
+    frames = [frontend.process(k) for k in range(len(frontend))]
+    switches = {"in": 0, "out": 0}
+    for previous, current in itertools.pairwise(frames):
+        bridge = frontend.bridge_images(previous, current)
+        if previous.bias == current.bias:
+            assert bridge is None, current.index
+            continue
+        assert bridge is not None, current.index
+        source, neighbour = (previous, current) if previous.bias == "aps" else (current, previous)
+        switches["in" if source is previous else "out"] += 1
+        assert (bridge.index, bridge.t_ns, bridge.bias) == (source.index, source.t_ns, neighbour.bias)
+        assert bridge.beta_left == neighbour.beta_left and bridge.beta_right == neighbour.beta_right
+        for side in ("left", "right"):
+            beta = getattr(neighbour, f"beta_{side}")
+            expected = fuse(getattr(source, f"frame_{side}"), getattr(source, f"events_{side}"), beta)
+            assert np.array_equal(getattr(bridge, side), expected), side
+        assert not np.array_equal(bridge.left, source.left)
+    assert switches["in"] >= 1 and switches["out"] >= 1, switches
+    # Switched off, or outside the fusion mode: no bridge.
+    off = Frontend(sequence, "fusion", _core.Config.from_toml("[fusion]\nbridge = false"), prefetch=0)
+    pair = next((a, b) for a, b in itertools.pairwise(frames) if a.bias != b.bias)
+    assert off.bridge_images(*pair) is None
+    events = Frontend(sequence, "events", prefetch=0)
+    assert events.bridge_images(events.process(pair[0].index), events.process(pair[1].index)) is None

@@ -171,3 +171,53 @@ def test_an_abrupt_change_of_appearance_starts_a_new_map_segment_and_tracking_go
     off = dhptam.System(CALIB, dhptam.Config.from_toml("[tracking]\nreinitialise = false"), threaded=False)
     states_off = [off.track(f.t_ns, f.left, f.right).state for f in frames]
     assert states_off[41:].count("lost") > 30, states_off[40:]
+
+
+# -- bridge keyframes across appearance switches (issue 8, accuracy) ----------------------------
+
+
+def test_bridge_keyframes_keep_one_map_across_an_appearance_switch() -> None:
+    """Frames 40-59 look the other way. Entering, the last normal frame is bridged to its
+    other rendering; leaving, the first normal frame is tracked with its other rendering and
+    bridged to its own: no new map segment, one covisible map, the ATE of an unswitched run."""
+    plain = generate(frames=80, seed=3)
+    other = _switch_appearance(plain, at=0)  # every frame rendered the other way
+    truth = np.array([f.world_from_cam[:3, 3] for f in plain])
+    system = dhptam.System(CALIB, None, threaded=False)
+    states = []
+    bridges = []
+    for i, (f, g) in enumerate(zip(plain, other, strict=True)):
+        if i == 60:
+            states.append(system.track(g.t_ns, g.left, g.right).state)
+            bridges.append(system.bridge(f.t_ns, (g.left, g.right), (f.left, f.right)))
+            continue
+        seen = g if 40 <= i < 60 else f
+        states.append(system.track(seen.t_ns, seen.left, seen.right).state)
+        if i == 39:
+            bridges.append(system.bridge(f.t_ns, (f.left, f.right), (g.left, g.right)))
+    assert all(b is not None and b.linked >= 50 and b.other_points >= 50 for b in bridges), bridges
+    assert states[1:].count("initialised") == 0, states
+    assert "lost" not in states
+    totals = system.tracking_totals()
+    assert totals == {"bridges": 2, "bridges_refused": 0, "segments": 0, "relocalisations": 0}
+    assert ate(positions(system), truth) < 0.03
+    # The same switches without bridges start two new segments.
+    off = dhptam.System(CALIB, None, threaded=False)
+    for i, (f, g) in enumerate(zip(plain, other, strict=True)):
+        seen = g if 40 <= i < 60 else f
+        off.track(seen.t_ns, seen.left, seen.right)
+    assert off.tracking_totals()["segments"] == 2
+
+
+def test_bridge_is_refused_unless_it_is_the_last_tracked_frame() -> None:
+    frames = generate(frames=4, seed=5)
+    system = dhptam.System(CALIB, None, threaded=False)
+    f0 = frames[0]
+    assert system.bridge(f0.t_ns, (f0.left, f0.right), (f0.left, f0.right)) is None  # nothing tracked
+    for f in frames[:3]:
+        system.track(f.t_ns, f.left, f.right)
+    assert system.bridge(frames[1].t_ns, (f0.left, f0.right), (f0.left, f0.right)) is None
+    assert system.tracking_totals()["bridges_refused"] == 2
+    bad = type(f0.left)(np.zeros((3, 3), np.float32), f0.left.descriptors[:3])
+    with pytest.raises(dhptam.DhptamError, match="keypoints"):
+        system.bridge(frames[2].t_ns, (bad, f0.right), (f0.left, f0.right))

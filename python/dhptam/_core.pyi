@@ -391,6 +391,20 @@ class PySystem:
         right_keypoints: npt.NDArray[np.float32],
         right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
     ) -> tuple[_FloatArray, str, int, bool]: ...
+    # Bridge keyframes across fusion-mode switches (issue 8, accuracy).
+    def bridge(
+        self,
+        t_ns: int,
+        left_keypoints: npt.NDArray[np.float32],
+        left_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+        right_keypoints: npt.NDArray[np.float32],
+        right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+        other_left_keypoints: npt.NDArray[np.float32],
+        other_left_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+        other_right_keypoints: npt.NDArray[np.float32],
+        other_right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+    ) -> tuple[int, int, int] | None: ...
+    def tracking_totals(self) -> dict[str, int]: ...
     def trajectory(self) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
     def keyframe_trajectory(self) -> tuple[npt.NDArray[np.int64], _FloatArray]: ...
     def map_points(self) -> _FloatArray: ...

@@ -298,9 +298,12 @@ def _run_command(args: argparse.Namespace) -> int:
         record_frames=args.record_frames,
     )
     states = ", ".join(f"{n} {s}" for s, n in sorted(result.states.items()))
+    tracking = result.tracking
     sys.stdout.write(
         f"{result.out}: {result.frames} frames ({states}) in {result.seconds:.1f} s ({result.fps:.1f} fps), "
         f"{result.keyframes} keyframes, {result.map_points} map points, {result.loop_closures} loop closures"
+        # Issue 8 (accuracy): how the map stayed in one piece across fusion-mode switches.
+        + f", {tracking.get('bridges', 0)} bridge keyframes, {tracking.get('segments', 0)} new map segments"
         + (" [interrupted]" if result.interrupted else "")
         + "\n"
     )

@@ -134,8 +134,9 @@ def _plot_overview(rows: list[DemoRow], reference: Any, path: Path) -> None:
 
 def _table(rows: list[DemoRow]) -> str:
     lines = [
-        "| mode | frames | tracked | lost | coverage | ATE RMSE [m] | ATE [% of path] | keyframes | fps |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| mode | frames | tracked | lost | coverage | ATE RMSE [m] | ATE [% of path] | keyframes "
+        "| bridges / new map segments | fps |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         ev = r.evaluation
@@ -149,6 +150,7 @@ def _table(rows: list[DemoRow]) -> str:
             f"{ev.ate_rmse_m:.4f}" if ev else "–",
             f"{ev.ate_percent_of_path:.2f}" if ev else "–",
             str(r.run.keyframes),
+            f"{r.run.tracking.get('bridges', 0)} / {r.run.tracking.get('segments', 0)}",
             f"{r.run.fps:.1f}",
         ]
         lines.append("| " + " | ".join(cells) + " |" + (f" {r.note}" if r.note else ""))

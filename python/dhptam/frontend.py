@@ -106,6 +106,27 @@ class FrontendFrame:
     events_right: _F32 | None
 
 
+@dataclass(frozen=True)
+class BridgeImages:
+    """The raw data of one frame blended with its neighbour's β, at a fusion-mode switch.
+
+    When the β mode of frame k differs from frame k−1's (``aps`` ↔ ``dvs``), the frame whose
+    raw frame is usable (the APS-biased one: k−1 when entering a dark or saturated segment, k
+    when leaving it) is blended again with the other frame's β, so that the tracker can see
+    the same instant both ways and insert a bridge keyframe (``dhptam.System.bridge``).
+    ``index``/``t_ns`` name that frame; ``bias`` and ``beta_left``/``beta_right`` are the
+    mode and β of this blend (the neighbour's).
+    """
+
+    index: int
+    t_ns: int
+    left: _U8
+    right: _U8
+    bias: str
+    beta_left: float
+    beta_right: float
+
+
 class _Done:
     """End-of-stream marker of the prefetch queue."""
 
@@ -181,6 +202,7 @@ class Frontend:
         self._events_cfg: dict[str, Any] = settings["events"]
         fusion_cfg = settings["fusion"]
         self.plane_depth_m: float = float(fusion_cfg["plane_depth_m"])
+        self.bridge_enabled: bool = bool(fusion_cfg["bridge"])
         self.align_px: tuple[float, float] = (
             float(fusion_cfg["align_px"][0]),
             float(fusion_cfg["align_px"][1]),
@@ -440,6 +462,30 @@ class Frontend:
             events_right=events["right"],
         )
 
+    def bridge_images(self, previous: FrontendFrame, current: FrontendFrame) -> BridgeImages | None:
+        """The bridge rendering at a switch between consecutive frames ``previous`` and
+        ``current`` (see :class:`BridgeImages`); ``None`` without a switch, outside the
+        ``fusion`` mode or with ``[fusion] bridge = false``."""
+        if (
+            self.mode != "fusion"
+            or not self.bridge_enabled
+            or current.index <= previous.index
+            or {previous.bias, current.bias} != {"aps", "dvs"}
+        ):
+            return None
+        source, neighbour = (previous, current) if previous.bias == "aps" else (current, previous)
+        if source.events_left is None or source.events_right is None:
+            return None
+        return BridgeImages(
+            index=source.index,
+            t_ns=source.t_ns,
+            left=fuse(source.frame_left, source.events_left, neighbour.beta_left),
+            right=fuse(source.frame_right, source.events_right, neighbour.beta_right),
+            bias=neighbour.bias,
+            beta_left=neighbour.beta_left,
+            beta_right=neighbour.beta_right,
+        )
+
     # -- iteration with prefetch ---------------------------------------------------------------
 
     def _produce(self, q: queue.Queue[Any]) -> None:
@@ -503,4 +549,4 @@ class Frontend:
         self.close()
 
 
-__all__ = ["MODES", "E3ctStats", "Frontend", "FrontendFrame", "RectifiedCalibration"]
+__all__ = ["MODES", "BridgeImages", "E3ctStats", "Frontend", "FrontendFrame", "RectifiedCalibration"]

@@ -68,6 +68,9 @@ class RunResult:
     interrupted: bool = False
     error: str | None = None
     files: dict[str, Path] = field(default_factory=dict)
+    tracking: dict[str, int] = field(default_factory=dict)
+    """Bridge keyframes at fusion-mode switches (``bridges``, ``bridges_refused``), new map
+    ``segments`` and ``relocalisations`` (``dhptam.System.tracking_totals``)."""
 
     @property
     def tracked(self) -> int:
@@ -476,9 +479,11 @@ def run(
             raise
         _finish(system, outputs, frontend, result, states, started, features, sink, reference)
         log.info(
-            "done: %d frames in %.1f s (%.1f fps), states %s, %d keyframes, %d map points, %d loops",
+            "done: %d frames in %.1f s (%.1f fps), states %s, %d keyframes, %d map points, %d loops, "
+            "%d bridges (%d refused), %d new map segments",
             result.frames, result.seconds, result.fps, dict(states), result.keyframes, result.map_points,
-            result.loop_closures,
+            result.loop_closures, result.tracking.get("bridges", 0),
+            result.tracking.get("bridges_refused", 0), result.tracking.get("segments", 0),
         )  # fmt: skip
         return result
 
@@ -514,6 +519,7 @@ def _finish(
     result.keyframes = len(kt)
     result.map_points = len(system.map_points())
     result.loop_closures = len(system.loop_closures())
+    result.tracking = system.tracking_totals()
     meta = {
         "frames": result.frames,
         "seconds": result.seconds,
@@ -524,6 +530,7 @@ def _finish(
         "interrupted": result.interrupted,
         "error": result.error,
         "loops_s": [[a / _NS, b / _NS] for a, b in system.loop_closures()],
+        "tracking": result.tracking,
         **outputs.meta,
     }
     config_toml = frontend.config.to_toml()
@@ -568,16 +575,24 @@ def _track_all(
     progress: bool,
     sink: Any,
 ) -> None:
-    def front(index: int) -> tuple[Any, float]:
+    # One frame of front-end state: at a fusion-mode switch the front-end renders the frame
+    # with usable raw data also with the other mode's β (Frontend.bridge_images).
+    previous: list[Any] = [None]
+
+    def front(index: int) -> tuple[Any, float, Any]:
         t0 = time.perf_counter()
         frame = frontend.process(index)
-        return frame, time.perf_counter() - t0
+        bridge = None if previous[0] is None else frontend.bridge_images(previous[0], frame)
+        previous[0] = frame
+        return frame, time.perf_counter() - t0, bridge
 
-    def extract(item: tuple[Any, float]) -> tuple[Any, float, Any, Any, float]:
-        frame, t_front = item
+    def extract(item: tuple[Any, float, Any]) -> tuple[Any, float, Any, Any, float, Any]:
+        frame, t_front, bridge = item
         t0 = time.perf_counter()
         left, right = extractor.extract(frame.left, frame.right)
-        return frame, t_front, left, right, time.perf_counter() - t0
+        if bridge is not None:
+            bridge = (bridge, extractor.extract(bridge.left, bridge.right))
+        return frame, t_front, left, right, time.perf_counter() - t0, bridge
 
     indices = iter(range(frontend.start, frontend.stop))
     fused = _stage(indices, front, "frontend", 2)
@@ -585,8 +600,9 @@ def _track_all(
     bar = _progress(frontend.stop - frontend.start, progress, f"dhptam {frontend.mode}")
     wall0 = time.perf_counter()
     t_first: int | None = None
+    last: tuple[int, Any] | None = None  # (frame index, (left, right) features it was tracked with)
     try:
-        for frame, t_front, left, right, t_extract in extracted:
+        for frame, t_front, left, right, t_extract, bridge in extracted:
             if realtime:
                 t_first = frame.t_ns if t_first is None else t_first
                 wait = (frame.t_ns - t_first) / _NS - (time.perf_counter() - wall0)
@@ -595,7 +611,8 @@ def _track_all(
             if outputs.recorder is not None:
                 outputs.recorder.add_frame(frame.index)
             t0 = time.perf_counter()
-            r = system.track(frame.t_ns, left, right)
+            r, bridged = _track_bridged(system, frame, (left, right), bridge, last)
+            last = (frame.index, (left, right))
             t_track = time.perf_counter() - t0
             states[r.state] += 1
             sink.frame(frame, left, right, r)
@@ -610,6 +627,7 @@ def _track_all(
                     "keypoints_right": len(right.keypoints),
                     "beta_left": f"{frame.beta_left:.4f}",
                     "bias": frame.bias,
+                    "bridge": bridged,
                     "frontend_s": round(t_front, 6),
                     "extraction_s": round(t_extract, 6),
                     "tracking_s": round(t_track, 6),
@@ -622,3 +640,34 @@ def _track_all(
         extracted.close()
         if bar is not None:
             bar.close()
+
+
+def _track_bridged(
+    system: Any,
+    frame: Any,
+    features: tuple[Any, Any],
+    bridge: Any,
+    last: tuple[int, Any] | None,
+) -> tuple[Any, str]:
+    """Tracks one frame, inserting a bridge keyframe at a fusion-mode switch.
+
+    ``bridge`` is ``(BridgeImages, (left, right) features)`` or ``None``. Entering a
+    dark/saturated segment the bridge renders the previous frame (already tracked with
+    ``last``'s features): the bridge keyframe goes in at that frame's pose before this frame
+    is tracked. Leaving one it renders this frame in the previous frames' mode: the frame is
+    tracked with that rendering (it matches the map) and the bridge keyframe adds its own
+    image. Returns the track result and ``none``, ``inserted`` or ``refused``.
+    """
+    if bridge is None:
+        return system.track(frame.t_ns, *features), "none"
+    images, other = bridge
+    if images.index < frame.index and last is not None and last[0] == images.index:
+        b = system.bridge(images.t_ns, last[1], other)
+        return system.track(frame.t_ns, *features), "refused" if b is None else "inserted"
+    if images.index == frame.index:
+        r = system.track(frame.t_ns, *other)
+        if r.state == "lost":
+            return r, "refused"
+        b = system.bridge(frame.t_ns, other, features)
+        return r, "refused" if b is None else "inserted"
+    return system.track(frame.t_ns, *features), "none"

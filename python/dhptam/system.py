@@ -59,6 +59,16 @@ class TrackResult:
     keyframe: bool
 
 
+@dataclass(frozen=True)
+class BridgeResult:
+    """A bridge keyframe (:meth:`System.bridge`): its id, the map points re-matched by the
+    tracked image and the new points from the other image's stereo matches."""
+
+    keyframe: int
+    linked: int
+    other_points: int
+
+
 class System:
     """Stereo SLAM over per-frame features; see the module documentation."""
 
@@ -84,6 +94,39 @@ class System:
             inliers=inliers,
             keyframe=keyframe,
         )
+
+    def bridge(
+        self,
+        t_ns: int,
+        primary: tuple[FeatureSet, FeatureSet],
+        other: tuple[FeatureSet, FeatureSet],
+    ) -> BridgeResult | None:
+        """Inserts a bridge keyframe at the last tracked frame (taken at ``t_ns``) across a
+        change of image appearance, e.g. the fusion switching between frame- and
+        event-dominated images.
+
+        ``primary`` are the (left, right) features of the image that frame was tracked with,
+        ``other`` those of the same sensor data rendered the other way (e.g. blended with the
+        other fusion mode's β). The primary features are matched against the map again at
+        the frame's pose; the keyframe holds both images' features, observes the re-matched
+        map points and adds the other image's stereo points, so the next frames, which look
+        like ``other``, track against it and the map stays one piece. ``None`` when refused:
+        the last frame is not at ``t_ns``, was lost, or too few primary features matched.
+        """
+        (pl, pr), (ol, orr) = primary, other
+        r = self._core.bridge(
+            int(t_ns),
+            pl.keypoints, pl.descriptors, pr.keypoints, pr.descriptors,
+            ol.keypoints, ol.descriptors, orr.keypoints, orr.descriptors,
+        )  # fmt: skip
+        if r is None:
+            return None
+        return BridgeResult(keyframe=r[0], linked=r[1], other_points=r[2])
+
+    def tracking_totals(self) -> dict[str, int]:
+        """Since the start: ``bridges`` inserted, ``bridges_refused``, new map ``segments``
+        (started at the constant-velocity pose) and ``relocalisations``."""
+        return self._core.tracking_totals()
 
     def trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """(t_ns (N,), poses (N, 4, 4)) of every tracked frame, with the latest corrections."""

@@ -221,6 +221,13 @@ config_section! {
         plane_depth_m: f64 = 0.0,
         /// Constant pixel offset δP_align (x, y) added after the event→frame warp.
         align_px: [f64; 2] = [0.0, 0.0],
+        /// Bridge keyframes at switches between the APS- and DVS-biased modes (issue 8): the
+        /// front-end also blends the frame with good raw data (the last APS-biased one) with
+        /// the neighbouring frame's β, and the tracker inserts one keyframe holding the
+        /// features of both images at that frame's tracked pose (`System::bridge`), so the
+        /// map stays one piece across the switch. Off: a switch that cannot be tracked
+        /// starts a new map segment (`[tracking] reinitialise`).
+        bridge: bool = true,
     }
 }
 

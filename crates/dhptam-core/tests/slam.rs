@@ -625,3 +625,152 @@ fn fusion_joins_map_segments_after_reinitialisation() {
         "ATE {ate_on} with fusion, {ate_off} without"
     );
 }
+
+/// A frame's features with the descriptors negated (the "other appearance": stereo matching
+/// works within it, matching against the normal map does not).
+fn negated(f: &SyntheticFrame) -> SyntheticFrame {
+    let mut g = f.clone();
+    g.left.descriptors.iter_mut().for_each(|x| *x = -*x);
+    g.right.descriptors.iter_mut().for_each(|x| *x = -*x);
+    g
+}
+
+fn features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
+    let dim = 32;
+    (
+        FrameFeatures {
+            keypoints: &f.left.keypoints,
+            descriptors: Descriptors::float(&f.left.descriptors, dim).unwrap(),
+        },
+        FrameFeatures {
+            keypoints: &f.right.keypoints,
+            descriptors: Descriptors::float(&f.right.descriptors, dim).unwrap(),
+        },
+    )
+}
+
+/// Frames `switched` look the other way (negated descriptors). With `bridge`, the switch
+/// in is bridged at the last normal frame (already tracked) and the switch out at the first
+/// normal frame (tracked with its other rendering first), as `dhptam run` does.
+fn run_with_switches(
+    frames: &[SyntheticFrame],
+    switched: std::ops::Range<usize>,
+    bridge: bool,
+) -> (f64, System, usize) {
+    let calib = SyntheticOptions::default().calib;
+    let mut config = Config::default();
+    // No relocalisation: a frame that cannot be tracked starts a new segment at once.
+    config.loop_closing.min_score = 1.0;
+    let mut system = System::new(calib, config, false).unwrap();
+    let mut restarts = 0;
+    for (i, f) in frames.iter().enumerate() {
+        let other = negated(f);
+        let r = if bridge && i == switched.end {
+            // Leaving: track the rendering that matches the map, then bridge to the real one.
+            let r = track(&mut system, &other);
+            let b = system
+                .bridge(f.t_ns, features(&other), features(f))
+                .unwrap();
+            assert!(b.is_some(), "bridge out refused at frame {i}");
+            r
+        } else if switched.contains(&i) {
+            track(&mut system, &other)
+        } else {
+            track(&mut system, f)
+        };
+        assert_ne!(r.state, TrackState::Lost, "frame {i} lost");
+        if i > 0 && r.state == TrackState::Initialised {
+            restarts += 1;
+        }
+        if bridge && i + 1 == switched.start {
+            // Entering: this frame was tracked normally; bridge it to its other rendering.
+            let b = system
+                .bridge(f.t_ns, features(f), features(&other))
+                .unwrap()
+                .expect("bridge in refused");
+            assert!(b.linked >= 50 && b.other_points >= 50, "{b:?}");
+        }
+    }
+    let truth: Vec<Vector3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    (
+        ate(&positions(&system.trajectory()), &truth),
+        system,
+        restarts,
+    )
+}
+
+#[test]
+fn bridge_keyframes_keep_one_map_across_appearance_switches() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 90,
+        turns: 0.2,
+        seed: 9,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let (ate_off, off, restarts_off) = run_with_switches(&frames, 40..60, false);
+    let (ate_on, on, restarts_on) = run_with_switches(&frames, 40..60, true);
+    let totals = on.tracking_totals();
+    eprintln!(
+        "without bridges: {restarts_off} restarts, ATE {ate_off:.4} m; with: {restarts_on}, \
+         ATE {ate_on:.4} m, {totals:?}"
+    );
+    // Without bridges each switch starts a new segment; with them none does.
+    assert_eq!(restarts_off, 2);
+    assert_eq!(off.tracking_totals().segments, 2);
+    assert_eq!(restarts_on, 0);
+    assert_eq!(totals.bridges, 2);
+    assert_eq!(totals.segments, 0);
+    assert_eq!(on.trajectory().len(), frames.len());
+    // One map: the last keyframe's covisibility reaches the first one.
+    assert!(on.with_map(reaches_first_keyframe));
+    assert!(!off.with_map(reaches_first_keyframe));
+    assert!(ate_on < 0.03, "ATE {ate_on} m with bridges");
+    // Bridge keyframes share their frame's timestamp: listed once.
+    let kt = on.keyframe_trajectory();
+    assert!(kt.windows(2).all(|w| w[0].0 < w[1].0));
+}
+
+#[test]
+fn bridge_is_refused_for_a_frame_that_is_not_the_last_tracked() {
+    let o = SyntheticOptions {
+        landmarks: 600,
+        frames: 5,
+        turns: 0.02,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let mut system = System::new(o.calib, Config::default(), false).unwrap();
+    // Nothing tracked yet.
+    let other = negated(&frames[0]);
+    assert!(system
+        .bridge(frames[0].t_ns, features(&frames[0]), features(&other))
+        .unwrap()
+        .is_none());
+    for f in &frames[..3] {
+        track(&mut system, f);
+    }
+    // Frame 1 is not the last tracked frame.
+    assert!(system
+        .bridge(frames[1].t_ns, features(&frames[1]), features(&other))
+        .unwrap()
+        .is_none());
+    let t = system.tracking_totals();
+    assert_eq!((t.bridges, t.bridges_refused), (0, 2));
+    let keyframes = system.with_map(|m| m.keyframes.len());
+    let other2 = negated(&frames[2]);
+    let b = system
+        .bridge(frames[2].t_ns, features(&frames[2]), features(&other2))
+        .unwrap()
+        .expect("bridge at the last tracked frame");
+    assert_eq!(system.tracking_totals().bridges, 1);
+    assert_eq!(system.with_map(|m| m.keyframes.len()), keyframes + 1);
+    assert_eq!(system.tracker_state().reference, Some(b.keyframe));
+    // The next frame, seen the other way, tracks against the bridge.
+    let r = track(&mut system, &negated(&frames[3]));
+    assert_eq!(r.state, TrackState::Ok);
+}

@@ -29,6 +29,19 @@ fn keypoints<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArr
     Ok(a)
 }
 
+/// One image's features read in place from checked arrays.
+fn features<'a>(
+    keypoints: &'a PyReadonlyArray2<'_, f32>,
+    descriptors: &'a DescriptorArray<'_>,
+) -> PyResult<FrameFeatures<'a>> {
+    Ok(FrameFeatures {
+        keypoints: keypoints
+            .as_slice()
+            .map_err(|_| input_error("keypoints", "a C-contiguous array", "a strided view"))?,
+        descriptors: descriptors.view()?,
+    })
+}
+
 fn pose_array<'py>(py: Python<'py>, pose: &Se3) -> Bound<'py, PyArray2<f64>> {
     let m = pose.matrix();
     let rows: Vec<Vec<f64>> = (0..4)
@@ -124,6 +137,53 @@ impl PySystem {
             r.inliers,
             r.keyframe,
         ))
+    }
+
+    /// Bridge keyframe at the last tracked frame `t_ns` (see `dhptam.System.bridge`):
+    /// `primary` features are the image that frame was tracked with, `other` the same data
+    /// rendered the other way. Returns (keyframe id, re-matched map points, points from the
+    /// other image), or None when refused.
+    #[allow(clippy::too_many_arguments)]
+    fn bridge<'py>(
+        &self,
+        py: Python<'py>,
+        t_ns: i64,
+        left_keypoints: &Bound<'py, PyAny>,
+        left_descriptors: &Bound<'py, PyAny>,
+        right_keypoints: &Bound<'py, PyAny>,
+        right_descriptors: &Bound<'py, PyAny>,
+        other_left_keypoints: &Bound<'py, PyAny>,
+        other_left_descriptors: &Bound<'py, PyAny>,
+        other_right_keypoints: &Bound<'py, PyAny>,
+        other_right_descriptors: &Bound<'py, PyAny>,
+    ) -> PyResult<Option<(u64, usize, usize)>> {
+        let lk = keypoints(left_keypoints, "left.keypoints")?;
+        let rk = keypoints(right_keypoints, "right.keypoints")?;
+        let olk = keypoints(other_left_keypoints, "other_left.keypoints")?;
+        let ork = keypoints(other_right_keypoints, "other_right.keypoints")?;
+        let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
+        let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
+        let old = DescriptorArray::extract(other_left_descriptors, "other_left.descriptors")?;
+        let ord = DescriptorArray::extract(other_right_descriptors, "other_right.descriptors")?;
+        let primary = (features(&lk, &ld)?, features(&rk, &rd)?);
+        let other = (features(&olk, &old)?, features(&ork, &ord)?);
+        let b = py
+            .detach_guarded("slam::bridge", || {
+                self.with(|s| s.bridge(t_ns, primary, other))
+            })?
+            .py()?;
+        Ok(b.map(|b| (b.keyframe, b.linked, b.other_points)))
+    }
+
+    /// {bridges, bridges_refused, segments, relocalisations} since the start.
+    fn tracking_totals<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let t = self.with(|s| s.tracking_totals());
+        let d = PyDict::new(py);
+        d.set_item("bridges", t.bridges)?;
+        d.set_item("bridges_refused", t.bridges_refused)?;
+        d.set_item("segments", t.segments)?;
+        d.set_item("relocalisations", t.relocalisations)?;
+        Ok(d)
     }
 
     /// (t_ns (N,) int64, poses (N, 4, 4) world_from_cam) of every tracked frame.

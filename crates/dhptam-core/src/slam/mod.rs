@@ -26,7 +26,8 @@ use crate::solver::StereoIntrinsics;
 
 pub use map::{FrameRecord, Keyframe, Map, MapPoint};
 pub use mapping::{fuse_and_refind, local_mapping, FusionReport, MappingReport};
-pub use system::{FrameFeatures, FusionTotals, StageStats, System};
+pub use system::{FrameFeatures, FusionTotals, StageStats, System, TrackingTotals};
+pub use tracking::Bridge;
 
 /// Calibration of the rectified stereo pair: left intrinsics, baseline and image size.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -13,8 +13,8 @@ use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::{fuse_and_refind, local_mapping};
 use super::tracking::{
-    bootstrap, commit_tracked, last_pose, reinitialise, stereo_match, track_local_map, StereoFrame,
-    TrackContext, TrackerState,
+    bootstrap, bridge_keyframe, commit_tracked, last_pose, reinitialise, stereo_match,
+    track_local_map, Bridge, StereoFrame, TrackContext, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -153,10 +153,24 @@ impl Shared {
     }
 }
 
+/// Running totals of how tracking kept (or did not keep) the map in one piece.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct TrackingTotals {
+    /// Bridge keyframes inserted ([`System::bridge`]).
+    pub bridges: u64,
+    /// Bridge requests refused (last frame lost or not the bridge's, too few re-matches).
+    pub bridges_refused: u64,
+    /// New map segments started at the constant-velocity pose (`[tracking] reinitialise`).
+    pub segments: u64,
+    /// Frames relocalised against an older keyframe.
+    pub relocalisations: u64,
+}
+
 /// The SLAM system. See the module documentation.
 pub struct System {
     shared: Arc<Shared>,
     state: TrackerState,
+    totals: TrackingTotals,
     descriptor: Option<(DescriptorKind, usize)>,
     threaded: bool,
     mapping_tx: Option<SyncSender<u64>>,
@@ -214,6 +228,7 @@ impl System {
         let mut system = Self {
             shared,
             state: TrackerState::default(),
+            totals: TrackingTotals::default(),
             descriptor: None,
             threaded,
             mapping_tx: None,
@@ -277,6 +292,90 @@ impl System {
         Ok(f.keypoints.chunks_exact(2).map(|c| [c[0], c[1]]).collect())
     }
 
+    /// Checks one stereo pair's features and matches them left to right.
+    fn stereo_frame<'f>(
+        &mut self,
+        t_ns: i64,
+        left: FrameFeatures<'f>,
+        right: FrameFeatures<'f>,
+    ) -> Result<StereoFrame<'f>> {
+        let left_xy = self.check_features("left", &left)?;
+        let right_xy = self.check_features("right", &right)?;
+        let shared = &self.shared;
+        let c = &shared.config;
+        let u_right = shared.time("stereo_match", || {
+            stereo_match(
+                &shared.calib,
+                &c.tracking,
+                &c.triangulation,
+                &left_xy,
+                left.descriptors,
+                &right_xy,
+                right.descriptors,
+            )
+        });
+        Ok(StereoFrame {
+            t_ns,
+            keypoints: left_xy,
+            u_right,
+            descriptors: left.descriptors,
+        })
+    }
+
+    /// Inserts a bridge keyframe at the last tracked frame (timestamp `t_ns`) across a change
+    /// of image appearance, e.g. the fusion switching between frame- and event-dominated
+    /// images: `primary` are the features of the image that frame was tracked with, `other`
+    /// those of the same sensor data rendered the other way (see
+    /// [`super::tracking::bridge_keyframe`]). Returns the keyframe and its counts, or `None`
+    /// when the bridge was refused (the last frame is not at `t_ns`, was lost, or too few
+    /// primary features matched the map again); mapping runs (or is queued) as for any
+    /// keyframe.
+    pub fn bridge(
+        &mut self,
+        t_ns: i64,
+        primary: (FrameFeatures, FrameFeatures),
+        other: (FrameFeatures, FrameFeatures),
+    ) -> Result<Option<Bridge>> {
+        if self.closed {
+            return Err(Error::invalid(
+                "system",
+                "a running system",
+                "one shut down",
+            ));
+        }
+        let primary = self.stereo_frame(t_ns, primary.0, primary.1)?;
+        let other = self.stereo_frame(t_ns, other.0, other.1)?;
+        let shared = Arc::clone(&self.shared);
+        let c = &shared.config;
+        let ctx = TrackContext {
+            calib: &shared.calib,
+            cfg: &c.tracking,
+            tri: &c.triangulation,
+        };
+        let bridge = shared.time("bridge", || {
+            let mut map = write_lock(&shared.map);
+            bridge_keyframe(&mut map, &mut self.state, &primary, &other, &ctx)
+        });
+        match bridge {
+            Some(b) => {
+                self.totals.bridges += 1;
+                self.after_keyframe(b.keyframe);
+            }
+            None => {
+                self.totals.bridges_refused += 1;
+                log::info!(
+                    "tracking: no bridge at t={t_ns} ns (last frame lost, elsewhere, or unmatched)"
+                );
+            }
+        }
+        Ok(bridge)
+    }
+
+    /// Totals of bridges, new map segments and relocalisations since the start.
+    pub fn tracking_totals(&self) -> TrackingTotals {
+        self.totals
+    }
+
     /// Tracks one stereo frame; inserts a keyframe and runs (or queues) mapping when needed.
     pub fn track(
         &mut self,
@@ -291,32 +390,14 @@ impl System {
                 "one shut down",
             ));
         }
-        let left_xy = self.check_features("left", &left)?;
-        let right_xy = self.check_features("right", &right)?;
+        let start = Instant::now();
+        let frame = self.stereo_frame(t_ns, left, right)?;
         let shared = Arc::clone(&self.shared);
         let c = &shared.config;
         let ctx = TrackContext {
             calib: &shared.calib,
             cfg: &c.tracking,
             tri: &c.triangulation,
-        };
-        let start = Instant::now();
-        let u_right = shared.time("stereo_match", || {
-            stereo_match(
-                ctx.calib,
-                ctx.cfg,
-                ctx.tri,
-                &left_xy,
-                left.descriptors,
-                &right_xy,
-                right.descriptors,
-            )
-        });
-        let frame = StereoFrame {
-            t_ns,
-            keypoints: left_xy,
-            u_right,
-            descriptors: left.descriptors,
         };
         let outcome = if self.state.reference.is_none() {
             let mut map = write_lock(&shared.map);
@@ -339,6 +420,7 @@ impl System {
                 }
                 None => match shared.time("relocalise", || self.relocalise(&frame, &ctx)) {
                     Some((t, reference)) => {
+                        self.totals.relocalisations += 1;
                         let mut map = write_lock(&shared.map);
                         self.state.reference = Some(reference);
                         commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, None, true)
@@ -356,6 +438,9 @@ impl System {
                         } else {
                             None
                         };
+                        if restarted.is_some() {
+                            self.totals.segments += 1;
+                        }
                         restarted.unwrap_or_else(|| {
                             if !self.state.lost {
                                 log::info!("tracking: lost at t={t_ns} ns");
@@ -466,13 +551,18 @@ impl System {
             .collect()
     }
 
-    /// Timestamps and `world_from_cam` of the keyframes, by id.
+    /// Timestamps and `world_from_cam` of the keyframes, by id; a bridge keyframe taken at
+    /// the same instant as the keyframe before it (same frame, same pose) is listed once.
     pub fn keyframe_trajectory(&self) -> Vec<(i64, Se3)> {
         let map = read_lock(&self.shared.map);
-        map.keyframes
-            .values()
-            .map(|k| (k.t_ns, k.world_from_cam))
-            .collect()
+        let mut out: Vec<(i64, Se3)> = Vec::with_capacity(map.keyframes.len());
+        for k in map.keyframes.values() {
+            if out.last().is_some_and(|l| l.0 == k.t_ns) {
+                continue;
+            }
+            out.push((k.t_ns, k.world_from_cam));
+        }
+        out
     }
 
     /// Map point positions, world frame, metres, by id.

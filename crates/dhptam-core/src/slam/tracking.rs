@@ -10,7 +10,7 @@ use super::map::{FrameRecord, Keyframe, Map, MapPoint};
 use super::{StereoCalibration, TrackState};
 use crate::config::{TrackingConfig, TriangulationConfig};
 use crate::geometry::{triangulate_rectified, Se3};
-use crate::matching::{best_two, DescriptorKind, Descriptors, MatchOptions};
+use crate::matching::{best_two, DescriptorKind, Descriptors, MatchOptions, OwnedDescriptors};
 use crate::solver::{refine_pose, LmOptions, Loss, PoseObservation, PoseOptions};
 
 /// A frame's left features with their stereo matches.
@@ -645,4 +645,92 @@ pub fn commit_tracked(
         inliers: tracked.inliers,
         keyframe,
     }
+}
+
+/// What [`bridge_keyframe`] inserted.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Bridge {
+    /// The bridge keyframe.
+    pub keyframe: u64,
+    /// Map points of the tracked image re-matched and observed by the bridge keyframe.
+    pub linked: usize,
+    /// New map points triangulated from the other image's stereo matches.
+    pub other_points: usize,
+}
+
+/// A bridge keyframe across a change of image appearance (issue 8: the fusion switching
+/// between frame- and event-dominated images, whose descriptors do not match each other).
+///
+/// `primary` is the image the map was tracked with at the last tracked frame (same
+/// timestamp), `other` the same sensor data rendered the other way. The primary features are
+/// matched again against the local map at the last tracked pose; when at least
+/// `min_tracked` of them are inliers, one keyframe holding the features of both images
+/// (primary first) is inserted at that pose (`world_from_cam` of the last frame): the
+/// primary matches become its observations of the existing map (so it is covisible with the
+/// old keyframes and bundle adjustment keeps it tied to them) and the stereo matches of both
+/// images become new points. It becomes the reference keyframe, so the next frames, which
+/// look like `other`, track against its points. Returns `None` (nothing changed) when the
+/// last frame is not `primary`'s, was lost, or too few primary features match.
+pub fn bridge_keyframe(
+    map: &mut Map,
+    state: &mut TrackerState,
+    primary: &StereoFrame,
+    other: &StereoFrame,
+    ctx: &TrackContext,
+) -> Option<Bridge> {
+    if state.lost || state.last.as_ref().map(|r| r.t_ns) != Some(primary.t_ns) {
+        return None;
+    }
+    let world_from_cam = last_pose(map, state)?;
+    let tracked = track_local_map(map, state, primary, ctx, world_from_cam.inverse())
+        .filter(|t| t.inliers >= ctx.cfg.min_tracked as usize)?;
+    let kind = primary.descriptors.kind();
+    let mut descriptors = OwnedDescriptors::new(kind, primary.descriptors.width());
+    for d in [primary.descriptors, other.descriptors] {
+        for i in 0..d.len() {
+            descriptors.push(d.row(i)).ok()?;
+        }
+    }
+    let mut keypoints = primary.keypoints.clone();
+    keypoints.extend_from_slice(&other.keypoints);
+    let mut u_right = primary.u_right.clone();
+    u_right.extend_from_slice(&other.u_right);
+    let both = StereoFrame {
+        t_ns: primary.t_ns,
+        keypoints,
+        u_right,
+        descriptors: descriptors.view(),
+    };
+    let mut matches = tracked.matches;
+    matches.resize(both.keypoints.len(), None);
+    let points_before = map.points.len();
+    let (id, count) = insert_keyframe(map, &both, world_from_cam, &matches, ctx.calib, ctx.tri);
+    let n_primary = primary.keypoints.len();
+    let other_points = map.keyframes[&id].points[n_primary..]
+        .iter()
+        .flatten()
+        .count();
+    if let Some(kf) = map.keyframes.get_mut(&id) {
+        // As for any new keyframe: the first frame tracked after it sets its reference count.
+        kf.tracked = 0;
+    }
+    let record = FrameRecord {
+        t_ns: primary.t_ns,
+        keyframe: id,
+        kf_from_cam: Se3::identity(),
+    };
+    state.last = Some(record);
+    state.reference = Some(id);
+    log::info!(
+        "tracking: bridge keyframe {id} at t={} ns: {} map points re-matched, {other_points} \
+         points from the other image ({count} in all, {} new)",
+        primary.t_ns,
+        tracked.inliers,
+        map.points.len().saturating_sub(points_before)
+    );
+    Some(Bridge {
+        keyframe: id,
+        linked: tracked.inliers,
+        other_points,
+    })
 }
