@@ -327,8 +327,14 @@ config_section! {
         /// After each keyframe's bundle adjustment, remove the older keyframes covisible with
         /// it that are redundant (see `redundant_fraction`): bounded memory on long runs that
         /// revisit places. The map's first keyframe, loop keyframes, the first keyframes of
-        /// map segments and keyframes not yet mapped are never removed.
-        cull_keyframes: bool = true,
+        /// map segments and keyframes not yet mapped are never removed. Off by default: on the
+        /// 30-minute tiny-rig run it bounds the keyframes but the map drifts more
+        /// (docs/BENCHMARKS.md, "Keyframe culling on long runs").
+        cull_keyframes: bool = false,
+        /// Only keyframes at least this many keyframes older than the one being mapped are
+        /// examined: the recent window keeps all its constraints while the camera explores
+        /// (culling inside it too tripled the drift on that run).
+        cull_min_age: u32 = 10,
         /// A keyframe is redundant when at least this fraction of its map points are each
         /// observed by `redundant_observers` other keyframes at the same or a finer scale.
         redundant_fraction: f64 = 0.9,
@@ -340,8 +346,9 @@ config_section! {
         redundant_distance_ratio: f64 = 1.2,
         /// A point older than `cull_after_keyframes` that the window's keyframes observe in
         /// less than this fraction of those whose view it projects into (at least 3 of them)
-        /// is removed: rarely found when predicted visible. 0 turns this off.
-        min_found_ratio: f64 = 0.25,
+        /// is removed: rarely found when predicted visible. 0 (the default) turns this off;
+        /// ORB-SLAM uses 0.25 (per frame rather than per keyframe).
+        min_found_ratio: f64 = 0.0,
         // --- end culling ---
     }
 }

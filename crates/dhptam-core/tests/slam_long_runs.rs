@@ -77,31 +77,41 @@ fn run(frames: &[SyntheticFrame], calib_from: &SyntheticOptions, config: Config)
         assert_ne!(r.state, TrackState::Lost, "frame {} lost", f.t_ns);
     }
     let traj = system.trajectory();
-    assert_eq!(traj.len(), frames.len(), "frames missing from the trajectory");
+    assert_eq!(
+        traj.len(),
+        frames.len(),
+        "frames missing from the trajectory"
+    );
     let estimated: Vec<Vector3<f64>> = traj.iter().map(|(_, p)| p.translation).collect();
-    let truth: Vec<Vector3<f64>> = frames.iter().map(|f| f.world_from_cam.translation).collect();
+    let truth: Vec<Vector3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
     let e = ate(&estimated, &truth);
     (system, e)
 }
 
 #[test]
 fn culling_removes_redundant_keyframes_of_a_slow_sequence_and_keeps_the_map_consistent() {
-    // A slow pan (6° over 120 frames) where every frame is made a keyframe: almost all of them
+    // A slow pan (3° over 60 frames) where every frame is made a keyframe: almost all of them
     // see the same points as their neighbours.
     let o = SyntheticOptions {
         landmarks: 1000,
-        frames: 120,
-        turns: 1.0 / 60.0,
+        frames: 60,
+        turns: 1.0 / 120.0,
         seed: 12,
         ..Default::default()
     };
     let frames = generate(&o);
     let mut config = Config::default();
     every_frame_a_keyframe(&mut config);
-    config.mapping.ba_iterations = 10;
+    config.mapping.ba_iterations = 5;
+    config.mapping.window = 5;
+    config.mapping.max_fixed = 5;
     config.mapping.cull_keyframes = false;
     let (off, ate_off) = run(&frames, &o, config.clone());
     config.mapping.cull_keyframes = true;
+    config.mapping.min_found_ratio = 0.25;
     let (on, ate_on) = run(&frames, &o, config);
     let (n_off, n_on) = (
         off.keyframe_trajectory().len(),
@@ -116,7 +126,7 @@ fn culling_removes_redundant_keyframes_of_a_slow_sequence_and_keeps_the_map_cons
     assert_eq!(off.culled_keyframes(), 0);
     assert_eq!(n_off, frames.len());
     assert_eq!(on.culled_keyframes() as usize, n_off - n_on);
-    assert!(n_on * 3 < n_off, "{n_on} keyframes kept of {n_off}");
+    assert!(n_on * 2 < n_off, "{n_on} keyframes kept of {n_off}");
     // Trajectory records of culled keyframes were handed over without moving the frames.
     assert!(ate_on < 0.02, "ATE {ate_on} m with culling");
     assert!(
@@ -125,19 +135,34 @@ fn culling_removes_redundant_keyframes_of_a_slow_sequence_and_keeps_the_map_cons
     );
     assert_consistent(&on);
     assert_consistent(&off);
-    // The first keyframe stays; what is left is not redundant any more.
+    // The first keyframe stays; of the keyframes old enough to be examined, what is left is
+    // not redundant any more (a culled neighbour can make one redundant again only until the
+    // next keyframe's step, so a handful may remain).
     let cfg = Config::default().mapping;
     on.with_map(|m| {
         assert!(m.keyframes.contains_key(&0));
         let newest = *m.keyframes.keys().last().unwrap();
-        let still = m
+        let examined: Vec<u64> = m
             .keyframes
             .keys()
-            .filter(|&&k| k != 0 && k != newest)
+            .copied()
+            .filter(|&k| k != 0 && k + cfg.cull_min_age as u64 <= newest)
+            .collect();
+        let still = examined
+            .iter()
             .filter(|&&k| redundancy(m, k, &cfg).is_some_and(|r| r >= cfg.redundant_fraction))
             .count();
-        // Keyframes newer than the last one mapped are not examined yet; a handful may remain.
-        assert!(still <= 3, "{still} redundant keyframes left");
+        assert!(
+            still <= 3,
+            "{still} of {} examined keyframes still redundant",
+            examined.len()
+        );
+        // The recent window is left alone.
+        let recent = m
+            .keyframes
+            .keys()
+            .filter(|&&k| k + (cfg.cull_min_age as u64) > newest);
+        assert_eq!(recent.count(), cfg.cull_min_age as usize);
     });
 }
 
@@ -174,13 +199,19 @@ fn the_invariant_check_finds_dangling_ids() {
     let (&o, _) = k.covisible.iter().next().unwrap();
     *k.covisible.get_mut(&o).unwrap() += 1;
     let errors = broken.check_invariants();
-    assert!(errors.iter().any(|e| e.contains("covisibility")), "{errors:?}");
+    assert!(
+        errors.iter().any(|e| e.contains("covisibility")),
+        "{errors:?}"
+    );
     // A point removed without its observations.
     let mut broken = map.clone();
     let p = *broken.points.keys().next().unwrap();
     broken.points.remove(&p);
     let errors = broken.check_invariants();
-    assert!(errors.iter().any(|e| e.contains("missing point")), "{errors:?}");
+    assert!(
+        errors.iter().any(|e| e.contains("missing point")),
+        "{errors:?}"
+    );
     // Culling through the map keeps it consistent and the trajectory where it was.
     let mut culled = map.clone();
     let victim = culled.keyframes.keys().nth(1).copied().unwrap();
@@ -192,7 +223,11 @@ fn the_invariant_check_finds_dangling_ids() {
         .collect();
     assert!(culled.cull_keyframe(victim, substitute));
     assert!(!culled.keyframes.contains_key(&victim));
-    assert!(culled.check_invariants().is_empty(), "{:?}", culled.check_invariants());
+    assert!(
+        culled.check_invariants().is_empty(),
+        "{:?}",
+        culled.check_invariants()
+    );
     for (r, b) in culled.trajectory.iter().zip(&before) {
         let d = (culled.frame_pose(r).unwrap().inverse() * *b).log().norm();
         assert!(d < 1e-9, "a frame moved by {d}");
@@ -214,80 +249,80 @@ fn a_new_map_segment_is_merged_on_loop_closure() {
     };
     let frames = generate(&o);
     let blackout = 100..170;
-    let run = |closing: bool| {
-        let mut config = Config::default();
-        config.loop_closing.enabled = closing;
-        config.mapping.ba_iterations = 10;
-        let mut system = System::new(o.calib, config, false).unwrap();
-        let mut restarts = Vec::new();
-        let mut tracked = Vec::new();
-        for (i, f) in frames.iter().enumerate() {
-            let r = if blackout.contains(&i) {
-                let mut dark = f.clone();
-                dark.left = Default::default();
-                dark.right = Default::default();
-                track(&mut system, &dark)
-            } else {
-                track(&mut system, f)
-            };
-            if blackout.contains(&i) {
-                assert_eq!(r.state, TrackState::Lost, "frame {i} in the blackout");
-            } else {
-                assert_ne!(r.state, TrackState::Lost, "frame {i} lost");
-                tracked.push(i);
-            }
-            if i > 0 && r.state == TrackState::Initialised {
-                restarts.push(i);
-            }
-        }
-        (system, restarts, tracked)
-    };
-    // The error of the relative pose between frame 50 (first segment) and the last frame
-    // (second segment), translation in metres and rotation in degrees.
-    let relative_error = |system: &System, tracked: &[usize]| {
+    let mut config = Config::default();
+    config.mapping.ba_iterations = 10;
+    let mut system = System::new(o.calib, config, false).unwrap();
+    // The error of the relative pose between frame 50 (first segment) and `last` (second
+    // segment): translation in metres, rotation in degrees.
+    let relative_error = |system: &System, tracked: &[usize], last: usize| {
         let traj = system.trajectory();
         let pose = |frame: usize| traj[tracked.iter().position(|&i| i == frame).unwrap()].1;
-        let last = *tracked.last().unwrap();
         let estimated = pose(50).inverse() * pose(last);
         let truth = frames[50].world_from_cam.inverse() * frames[last].world_from_cam;
         let e = truth.inverse() * estimated;
         (e.translation.norm(), e.rotation.log().norm().to_degrees())
     };
-    let (open, restarts, tracked) = run(false);
-    assert_eq!(restarts, vec![blackout.end], "the new segment starts after the blackout");
+    let mut restarts = Vec::new();
+    let mut tracked = Vec::new();
+    let mut before = None;
+    for (i, f) in frames.iter().enumerate() {
+        let r = if blackout.contains(&i) {
+            let mut dark = f.clone();
+            dark.left = Default::default();
+            dark.right = Default::default();
+            track(&mut system, &dark)
+        } else {
+            track(&mut system, f)
+        };
+        if blackout.contains(&i) {
+            assert_eq!(r.state, TrackState::Lost, "frame {i} in the blackout");
+            continue;
+        }
+        assert_ne!(r.state, TrackState::Lost, "frame {i} lost");
+        if i > 0 && r.state == TrackState::Initialised {
+            restarts.push(i);
+        }
+        tracked.push(i);
+        if i > 50 && system.loop_closures().is_empty() {
+            // No loop yet: the segment-to-segment error as tracked, without a merge.
+            let segments = system.with_map(|m| m.segment_starts.len());
+            before = Some((i, relative_error(&system, &tracked, i), segments));
+        }
+    }
     assert_eq!(
-        open.with_map(|m| m.segment_starts.len()),
-        1,
-        "one unjoined segment"
+        restarts,
+        vec![blackout.end],
+        "the new segment starts after the blackout"
     );
-    let before = relative_error(&open, &tracked);
-    let (closed, restarts, tracked_closed) = run(true);
-    assert_eq!(restarts, vec![blackout.end]);
-    assert_eq!(tracked_closed, tracked);
     // The trajectory covers every frame outside the blackout.
     assert_eq!(tracked.len(), frames.len() - blackout.len());
-    assert_eq!(closed.trajectory().len(), tracked.len());
-    let loops = closed.loop_closures();
-    let after = relative_error(&closed, &tracked);
+    assert_eq!(system.trajectory().len(), tracked.len());
+    let loops = system.loop_closures();
+    let (frame, before, segments) = before.unwrap();
+    let after = relative_error(&system, &tracked, frame);
     eprintln!(
-        "segment-to-segment error without loop closing {:.3} m / {:.1}°, with {:.3} m / {:.2}°; \
-         loops {loops:?}",
+        "frame {frame} relative to frame 50: {:.3} m / {:.1}° before the merge, {:.3} m / \
+         {:.2}° after; loops {loops:?}",
         before.0, before.1, after.0, after.1
     );
     assert!(!loops.is_empty(), "no loop closed");
+    assert_eq!(segments, 1, "one unjoined segment before the loop");
     let boundary = frames[blackout.end].t_ns;
     assert!(
         loops.iter().any(|&(q, m)| q > boundary && m < boundary),
         "no loop between the segments: {loops:?}"
     );
     assert!(
-        closed.with_map(|m| m.segment_starts.is_empty()),
+        system.with_map(|m| m.segment_starts.is_empty()),
         "the segments were not joined"
     );
     assert!(before.1 > 20.0, "the new segment was not off ({before:?})");
-    assert!(after.0 < 0.1 * before.0 && after.1 < 2.0, "{after:?} vs {before:?}");
+    assert!(
+        after.0 < 0.1 * before.0 && after.1 < 2.0,
+        "{after:?} vs {before:?}"
+    );
     // One rigid alignment of the whole trajectory fits both segments.
-    let estimated: Vec<Vector3<f64>> = closed
+    let estimated: Vec<Vector3<f64>> = system
         .trajectory()
         .iter()
         .map(|(_, p)| p.translation)
@@ -299,7 +334,7 @@ fn a_new_map_segment_is_merged_on_loop_closure() {
     let e = ate(&estimated, &truth);
     eprintln!("ATE after the merge {e:.4} m");
     assert!(e < 0.05, "ATE {e} m after the merge");
-    assert_consistent(&closed);
+    assert_consistent(&system);
 }
 
 #[test]
@@ -308,8 +343,8 @@ fn saturated_mapping_and_loop_closing_shut_down_under_load() {
     // the mapping thread at every frame, and shutdown comes while both queues are full.
     let o = SyntheticOptions {
         landmarks: 500,
-        frames: 700,
-        turns: 1.2,
+        frames: 400,
+        turns: 1.15,
         seed: 13,
         ..Default::default()
     };
@@ -317,6 +352,8 @@ fn saturated_mapping_and_loop_closing_shut_down_under_load() {
     let mut config = Config::default();
     every_frame_a_keyframe(&mut config);
     config.mapping.queue = 1;
+    config.mapping.cull_keyframes = true;
+    config.mapping.min_found_ratio = 0.25;
     config.loop_closing.skip_recent = 5;
     let mut system = System::new(o.calib, config, true).unwrap();
     for f in &frames {
@@ -339,7 +376,10 @@ fn saturated_mapping_and_loop_closing_shut_down_under_load() {
     assert!(system.culled_keyframes() > 0);
     assert_consistent(&system);
     let estimated: Vec<Vector3<f64>> = traj.iter().map(|(_, p)| p.translation).collect();
-    let truth: Vec<Vector3<f64>> = frames.iter().map(|f| f.world_from_cam.translation).collect();
+    let truth: Vec<Vector3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
     let e = ate(&estimated, &truth);
     eprintln!("ATE {e:.4} m");
     assert!(e < 0.1, "ATE {e} m");

@@ -361,19 +361,27 @@ impl Map {
         let mut shared: BTreeMap<(u64, u64), u32> = BTreeMap::new();
         for (&id, p) in &self.points {
             if p.id != id || id >= self.next_point {
-                errors.push(format!("point {id}: id field {} / counter {}", p.id, self.next_point));
+                errors.push(format!(
+                    "point {id}: id field {} / counter {}",
+                    p.id, self.next_point
+                ));
             }
             if p.observations.is_empty() {
                 errors.push(format!("point {id}: no observations"));
             }
             if !self.keyframes.contains_key(&p.first_keyframe) {
-                errors.push(format!("point {id}: reference keyframe {} missing", p.first_keyframe));
+                errors.push(format!(
+                    "point {id}: reference keyframe {} missing",
+                    p.first_keyframe
+                ));
             }
             for (&kf, &f) in &p.observations {
                 match self.keyframes.get(&kf) {
                     None => errors.push(format!("point {id}: observed by missing keyframe {kf}")),
                     Some(k) if k.points.get(f as usize).copied().flatten() != Some(id) => errors
-                        .push(format!("point {id}: keyframe {kf} keypoint {f} does not hold it")),
+                        .push(format!(
+                            "point {id}: keyframe {kf} keypoint {f} does not hold it"
+                        )),
                     Some(_) => {}
                 }
             }
@@ -387,17 +395,27 @@ impl Map {
         }
         for (&id, k) in &self.keyframes {
             if k.id != id || id >= self.next_keyframe {
-                errors.push(format!("keyframe {id}: id field {} / counter {}", k.id, self.next_keyframe));
+                errors.push(format!(
+                    "keyframe {id}: id field {} / counter {}",
+                    k.id, self.next_keyframe
+                ));
             }
             if k.points.len() != k.keypoints.len() || k.u_right.len() != k.keypoints.len() {
-                errors.push(format!("keyframe {id}: per-keypoint arrays differ in length"));
+                errors.push(format!(
+                    "keyframe {id}: per-keypoint arrays differ in length"
+                ));
             }
             for (f, p) in k.points.iter().enumerate() {
                 let Some(p) = p else { continue };
                 match self.points.get(p) {
-                    None => errors.push(format!("keyframe {id}: keypoint {f} holds missing point {p}")),
-                    Some(q) if q.observations.get(&id) != Some(&(f as u32)) => errors
-                        .push(format!("keyframe {id}: keypoint {f} holds point {p}, which does not list it")),
+                    None => errors.push(format!(
+                        "keyframe {id}: keypoint {f} holds missing point {p}"
+                    )),
+                    Some(q) if q.observations.get(&id) != Some(&(f as u32)) => {
+                        errors.push(format!(
+                            "keyframe {id}: keypoint {f} holds point {p}, which does not list it"
+                        ))
+                    }
                     Some(_) => {}
                 }
             }
@@ -411,13 +429,22 @@ impl Map {
             }
         }
         for (&(a, b), &w) in &shared {
-            if self.keyframes.get(&a).is_some_and(|k| !k.covisible.contains_key(&b)) {
-                errors.push(format!("keyframe {a}: covisibility with {b} ({w} shared points) missing"));
+            if self
+                .keyframes
+                .get(&a)
+                .is_some_and(|k| !k.covisible.contains_key(&b))
+            {
+                errors.push(format!(
+                    "keyframe {a}: covisibility with {b} ({w} shared points) missing"
+                ));
             }
         }
         for (i, r) in self.trajectory.iter().enumerate() {
             if !self.keyframes.contains_key(&r.keyframe) {
-                errors.push(format!("trajectory record {i}: keyframe {} missing", r.keyframe));
+                errors.push(format!(
+                    "trajectory record {i}: keyframe {} missing",
+                    r.keyframe
+                ));
             }
         }
         for (a, b) in &self.loops {

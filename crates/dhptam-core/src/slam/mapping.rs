@@ -276,7 +276,8 @@ pub fn redundancy(map: &Map, id: u64, cfg: &MappingConfig) -> Option<f64> {
 /// [`MappingConfig::redundant_fraction`] of their points are seen by enough other keyframes at
 /// the same or a finer scale ([`redundancy`]; ORB-SLAM's rule). Never removed: the map's first
 /// keyframe, keyframes of accepted loops, first keyframes of map segments, and `kf` and newer
-/// keyframes (not mapped yet; the tracker's reference is the newest). A removed keyframe's
+/// keyframes (not mapped yet; the tracker's reference is the newest), and keyframes younger
+/// than [`MappingConfig::cull_min_age`] keyframes. A removed keyframe's
 /// observations, trajectory records and covisibility are handed over by
 /// [`Map::cull_keyframe`] (records to its most covisible keyframe) and its place-database
 /// entry is removed. Candidates are examined oldest first, each against the map as the
@@ -307,7 +308,8 @@ pub fn cull_keyframes(
         .covisible
         .keys()
         .copied()
-        .filter(|&c| c < kf && !protected.contains(&c))
+        .filter(|&c| c.saturating_add(cfg.cull_min_age as u64) <= kf && c < kf)
+        .filter(|c| !protected.contains(c))
         .collect();
     for c in candidates {
         report.examined += 1;

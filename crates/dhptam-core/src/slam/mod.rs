@@ -25,8 +25,8 @@ use crate::geometry::Se3;
 use crate::solver::StereoIntrinsics;
 
 pub use map::{FrameRecord, Keyframe, Map, MapPoint};
-pub use mapping::{fuse_and_refind, local_mapping, FusionReport, MappingReport};
 pub use mapping::{cull_keyframes, redundancy, CullReport};
+pub use mapping::{fuse_and_refind, local_mapping, FusionReport, MappingReport};
 pub use system::{FrameFeatures, FusionTotals, StageStats, System};
 
 /// Calibration of the rectified stereo pair: left intrinsics, baseline and image size.
