@@ -24,6 +24,7 @@ import argparse
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -43,14 +44,40 @@ def _rss_mib(pid: int) -> float | None:
     return None
 
 
-def _sequence(cache: Path, minutes: float, seed: int, fps: float) -> Path:
+def _looped_trajectory(path: Path, minutes: float, loops: int) -> Path:
+    """The built-in ``closed_loop`` motion of ``minutes / loops`` minutes written ``loops`` times
+    in a row as one TUM file (10 Hz samples; the loop ends where it starts, so the path is
+    continuous and every lap revisits the places mapped in the first)."""
+    from dhptam import _core
+
+    lap_ns = round(60e9 * minutes / loops)
+    t, poses = _core.sim_builtin_trajectory("closed_loop", lap_ns)
+    keep = np.arange(0, len(t), max(1, len(t) // max(1, lap_ns // 100_000_000)))
+    rows = []
+    for lap in range(loops):
+        for k in keep:
+            if lap > 0 and k == 0:
+                continue  # the lap's start is the previous lap's end
+            ts = int(t[k]) + lap * lap_ns
+            rows.append(f"{ts // 10**9}.{ts % 10**9:09d} " + " ".join(f"{v:.9f}" for v in poses[k]))
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def _sequence(cache: Path, minutes: float, seed: int, fps: float, loops: int, event_step_ms: float) -> Path:
     from dhptam import Config
     from dhptam.sim import simulate
 
     name = f"long-{minutes:g}min-{fps:g}hz-s{seed}"
+    if loops > 1:
+        name += f"-{loops}laps"
     path = cache / name
     if (path / "groundtruth_frame_left.txt").is_file():
         return path
+    trajectory = "closed_loop"
+    if loops > 1:
+        trajectory = str(_looped_trajectory(cache / f"{name}-trajectory.tum", minutes, loops))
+    step_us = 1000.0 * event_step_ms
     t0 = time.perf_counter()
     summary = simulate(
         cache,
@@ -59,12 +86,17 @@ def _sequence(cache: Path, minutes: float, seed: int, fps: float) -> Path:
         seed=seed,
         duration_s=60.0 * minutes,
         profile="normal",
-        trajectory="closed_loop",
+        trajectory=trajectory,
         overwrite=True,
         progress=True,
-        # Slow motion: event-camera renders every 100 ms at most (the per-pixel log step still
-        # bounds them) and no motion-blur sub-renders, to make 30 minutes affordable.
-        config=Config.from_toml(f"[sim]\nfps = {fps}\nmax_render_step_us = 100000.0\nblur_samples = 1\n"),
+        # Slow motion: event-camera renders every `event_step_ms` at most (100 ms by default;
+        # the per-pixel log step still bounds them unless the step is longer than 100 ms, where
+        # it is lifted too: such sequences are for `frames` mode, whose memory is measured) and
+        # no motion-blur sub-renders, to make 30 minutes affordable.
+        config=Config.from_toml(
+            f"[sim]\nfps = {fps}\nmax_render_step_us = {step_us}\nblur_samples = 1\n"
+            + (f"min_render_step_us = {step_us}\nmax_log_step = 1000.0\n" if event_step_ms > 100.0 else "")
+        ),
     )
     print(
         f"simulated {name}: {summary.frames} frame pairs, "
@@ -101,10 +133,27 @@ def _repeated(sequence: Path, times: int) -> Path:
     return sequence.parent / name
 
 
-def measure(sequence: Path, out: Path, mode: str, interval_s: float, fps: float) -> dict:
+_MAP_SIZE = re.compile(r"mapping: map at t=(-?\d+) ns: (\d+) keyframes, (\d+) points")
+
+
+def _map_sizes(log: Path) -> list[tuple[float, int, int]]:
+    """(sequence time [s], keyframes, map points) from the mapping thread's periodic log line."""
+    sizes = []
+    for line in log.read_text().splitlines():
+        m = _MAP_SIZE.search(line)
+        if m:
+            sizes.append((int(m.group(1)) / 1e9, int(m.group(2)), int(m.group(3))))
+    return sorted(sizes)
+
+
+def measure(
+    sequence: Path, out: Path, mode: str, interval_s: float, fps: float, config: str | None = None
+) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "dhptam", "run", "--sequence", str(sequence), "--out", str(out / "run")]
     cmd += ["--mode", mode, "-q"]
+    if config:
+        cmd += ["--config", config]
     t0 = time.perf_counter()
     child = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     samples: list[tuple[float, float]] = []
@@ -139,6 +188,8 @@ def measure(sequence: Path, out: Path, mode: str, interval_s: float, fps: float)
         "keyframes": sum(
             1 for line in (out / "run" / "keyframes.tum").read_text().splitlines() if line[:1].isdigit()
         ),
+        "map_points": _ply_vertices(out / "run" / "map.ply"),
+        "map_sizes": _map_sizes(out / "run" / "run.log"),
         "summary": stdout.strip(),
         "samples": samples,
     }
@@ -163,6 +214,17 @@ def measure(sequence: Path, out: Path, mode: str, interval_s: float, fps: float)
     return result
 
 
+def _ply_vertices(path: Path) -> int:
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.decode("ascii", "replace").strip()
+            if line.startswith("element vertex"):
+                return int(line.split()[2])
+            if line == "end_header":
+                break
+    return -1
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -177,24 +239,40 @@ def main() -> None:
     )
     parser.add_argument("--fps", type=float, default=20.0, help="frame rate of the simulated sequence [Hz]")
     parser.add_argument("--interval", type=float, default=1.0, help="RSS sampling period [s]")
+    parser.add_argument(
+        "--loops", type=int, default=1, help="laps of the closed-loop motion in one simulated sequence"
+    )
+    parser.add_argument(
+        "--event-step-ms",
+        type=float,
+        default=100.0,
+        help="longest interval between event-camera renders [ms]; above 100 every render is this far apart",
+    )
+    parser.add_argument("--config", default=None, help="TOML config for `dhptam run` (e.g. culling off)")
     args = parser.parse_args()
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores", file=sys.stderr)
     print(
         "| sequence | mode | frames | wall [s] | peak RSS [MiB] | RSS at 25 % | final RSS "
-        "| slope, 2nd half [MiB/min] | keyframes |"
+        "| slope, 2nd half [MiB/min] | keyframes | map points | keyframes at 1/3, 2/3, end |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for minutes in args.minutes or [10.0]:
-        seq = _sequence(cache, minutes, args.seed, args.fps)
+        seq = _sequence(cache, minutes, args.seed, args.fps, args.loops, args.event_step_ms)
         if args.repeat > 1:
             seq = _repeated(seq, args.repeat)
-        r = measure(seq, Path(args.out) / seq.name, args.mode, args.interval, args.fps)
+        tag = Path(args.config).stem if args.config else "default"
+        run_out = Path(args.out) / f"{seq.name}-{tag}"
+        r = measure(seq, run_out, args.mode, args.interval, args.fps, args.config)
+        sizes = r["map_sizes"]
+        at = [sizes[min(len(sizes) - 1, len(sizes) * k // 3)][1] for k in (1, 2, 3)] if sizes else []
+        thirds = ", ".join(map(str, at)) or "-"
         print(
-            f"| {r['sequence']} | {r['mode']} | {r['frames']} | {r['wall_s']:.0f} "
+            f"| {r['sequence']} ({tag}) | {r['mode']} | {r['frames']} | {r['wall_s']:.0f} "
             f"| {r['peak_rss_mib']:.0f} | {r['rss_at_25pct_mib']:.0f} | {r['final_rss_mib']:.0f} "
-            f"| {r['slope_mib_per_seq_min_second_half']:+.2f} | {r['keyframes']} |",
+            f"| {r['slope_mib_per_seq_min_second_half']:+.2f} | {r['keyframes']} | {r['map_points']} "
+            f"| {thirds} |",
             flush=True,
         )
 

@@ -330,6 +330,33 @@ config_section! {
         /// Largest distance between a point's projection and the keypoint it fuses with,
         /// pixels (in the left image and, for stereo keypoints, in the right column).
         fuse_radius_px: f64 = 4.0,
+        // --- culling (issue 10) ---
+        /// After each keyframe's bundle adjustment, remove the older keyframes covisible with
+        /// it that are redundant (see `redundant_fraction`): bounded memory on long runs that
+        /// revisit places. The map's first keyframe, loop keyframes, the first keyframes of
+        /// map segments and keyframes not yet mapped are never removed. Off by default: on the
+        /// 30-minute tiny-rig run it bounds the keyframes but the map drifts more
+        /// (docs/BENCHMARKS.md, "Keyframe culling on long runs").
+        cull_keyframes: bool = false,
+        /// Only keyframes at least this many keyframes older than the one being mapped are
+        /// examined: the recent window keeps all its constraints while the camera explores
+        /// (culling inside it too tripled the drift on that run).
+        cull_min_age: u32 = 10,
+        /// A keyframe is redundant when at least this fraction of its map points are each
+        /// observed by `redundant_observers` other keyframes at the same or a finer scale.
+        redundant_fraction: f64 = 0.9,
+        /// See `redundant_fraction`.
+        redundant_observers: u32 = 3,
+        /// "The same or a finer scale": the other keyframe is at most this many times the
+        /// keyframe's distance from the point (1.2: one level of a 1.2-ratio image pyramid
+        /// coarser, as ORB-SLAM allows; keypoints carry no scale here, distance stands in).
+        redundant_distance_ratio: f64 = 1.2,
+        /// A point older than `cull_after_keyframes` that the window's keyframes observe in
+        /// less than this fraction of those whose view it projects into (at least 3 of them)
+        /// is removed: rarely found when predicted visible. 0 (the default) turns this off;
+        /// ORB-SLAM uses 0.25 (per frame rather than per keyframe).
+        min_found_ratio: f64 = 0.0,
+        // --- end culling ---
     }
 }
 
@@ -434,7 +461,33 @@ impl MappingConfig {
             self.ba_iterations >= 1,
             "at least 1",
             self.ba_iterations,
+        )?;
+        // --- culling (issue 10) ---
+        check(
+            "mapping.redundant_fraction",
+            self.redundant_fraction > 0.0 && self.redundant_fraction <= 1.0,
+            "a value in (0, 1]",
+            self.redundant_fraction,
+        )?;
+        check(
+            "mapping.redundant_observers",
+            self.redundant_observers >= 1,
+            "at least 1",
+            self.redundant_observers,
+        )?;
+        check(
+            "mapping.redundant_distance_ratio",
+            self.redundant_distance_ratio.is_finite() && self.redundant_distance_ratio >= 1.0,
+            "a number ≥ 1",
+            self.redundant_distance_ratio,
+        )?;
+        check(
+            "mapping.min_found_ratio",
+            (0.0..=1.0).contains(&self.min_found_ratio),
+            "a value in [0, 1]",
+            self.min_found_ratio,
         )
+        // --- end culling ---
     }
 }
 

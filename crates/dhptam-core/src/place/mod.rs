@@ -204,6 +204,13 @@ impl PlaceDatabase {
         self.dim
     }
 
+    /// The stored keyframe ids, ascending.
+    pub fn ids(&self) -> Vec<u64> {
+        let mut ids = self.ids.clone();
+        ids.sort_unstable();
+        ids
+    }
+
     /// Whether keyframe `id` is stored.
     pub fn contains(&self, id: u64) -> bool {
         self.index.contains_key(&id)

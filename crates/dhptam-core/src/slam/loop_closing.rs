@@ -8,6 +8,9 @@
 //! imply agree ([`verify_loop`]). An accepted loop adds
 //! an edge to a pose graph over all keyframes (odometry edges: the relative poses before the
 //! correction, between consecutive and strongly covisible keyframes), which is optimised;
+//! no odometry edge crosses the boundary of a map segment that tracking started after a loss
+//! until a loop joins the two segments, so a loop between segments moves the new segment onto
+//! the old one as a whole (issue 10);
 //! map points move with the keyframe that created them, and the loop keyframe's matched
 //! points are fused with the old ones. The tracker follows automatically, as its frames are
 //! stored relative to keyframes. Relocalisation uses the same query and verification for a
@@ -337,9 +340,25 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
         measurement: z,
         information: Matrix6::identity(),
     };
+    // Map segments (issue 10): the relative pose across an unjoined segment boundary is a
+    // guess, not a measurement, so no odometry edge crosses it; each segment is one group of
+    // keyframes, and loops (earlier ones and this one) join groups.
+    let starts: Vec<u64> = map
+        .segment_starts
+        .iter()
+        .copied()
+        .filter(|s| index.contains_key(s))
+        .collect();
+    let segment = |id: u64| starts.partition_point(|&s| s <= id);
+    let mut groups = Groups::new(starts.len() + 1);
+    for (a, b) in map.loops.iter().chain([&(kf, m.candidate)]) {
+        groups.join(segment(*a), segment(*b));
+    }
     let mut edges = Vec::new();
     for i in 1..ids.len() {
-        edges.push(edge(i - 1, i, old[i - 1].inverse() * old[i]));
+        if starts.binary_search(&ids[i]).is_err() {
+            edges.push(edge(i - 1, i, old[i - 1].inverse() * old[i]));
+        }
     }
     // Earlier loops stay closed: their pairs keep today's relative poses.
     for (a, b) in &map.loops {
@@ -349,11 +368,22 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
     }
     let corrected_query = m.cam_from_world.inverse();
     edges.push(edge(ci, qi, old[ci].inverse() * corrected_query));
+    // The gauge: the first keyframe, and the first keyframe of the oldest segment of every
+    // group that no loop ties to the first segment (those segments keep their pose).
+    let mut fixed = vec![0];
+    let mut anchored = vec![groups.find(0)];
+    for (g, &s) in starts.iter().enumerate() {
+        let root = groups.find(g + 1);
+        if !anchored.contains(&root) {
+            anchored.push(root);
+            fixed.push(index[&s]);
+        }
+    }
     let mut graph = PoseGraph3 {
         ids: (0..ids.len()).collect(),
         poses: old.clone(),
         edges,
-        fixed: vec![0],
+        fixed,
     };
     let report = solve_pose_graph3(&mut graph, &PoseGraphOptions::default())?;
     log::info!(
@@ -402,6 +432,41 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
         }
     }
     map.loops.push((kf, m.candidate));
+    // Segments now in the same group as the segment before them are joined: the corrected
+    // relative pose across their boundary is a measurement from here on.
+    for (g, &s) in starts.iter().enumerate() {
+        if groups.find(g + 1) == groups.find(g) {
+            map.segment_starts.remove(&s);
+            log::info!(
+                "loop: keyframe {kf}: the map segment starting at keyframe {s} is joined to the \
+                 one before it (loop with keyframe {})",
+                m.candidate
+            );
+        }
+    }
     map.corrections += 1;
     Ok(())
+}
+
+/// Disjoint sets over map segments (union by smaller root, path halving).
+struct Groups(Vec<usize>);
+
+impl Groups {
+    fn new(n: usize) -> Self {
+        Self((0..n).collect())
+    }
+
+    fn find(&mut self, mut i: usize) -> usize {
+        while self.0[i] != i {
+            self.0[i] = self.0[self.0[i]];
+            i = self.0[i];
+        }
+        i
+    }
+
+    fn join(&mut self, a: usize, b: usize) {
+        let (a, b) = (self.find(a), self.find(b));
+        let (lo, hi) = (a.min(b), a.max(b));
+        self.0[hi] = lo;
+    }
 }

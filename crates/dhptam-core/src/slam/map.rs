@@ -4,7 +4,7 @@
 //! Ordered maps (`BTreeMap`) keep every iteration order independent of hashing, so the
 //! synchronous mode gives the same results on every run.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::Vector3;
 
@@ -100,6 +100,12 @@ pub struct Map {
     /// Points fused into others: removed id → the id that absorbed it. An id held across a
     /// lock release (the tracker's matches) is looked up with [`Map::resolve`]; not saved.
     pub replaced: BTreeMap<u64, u64>,
+    /// First keyframes of map segments not yet joined to the segment before them: tracking
+    /// started a new segment there at a guessed pose ([`super::tracking::reinitialise`]), so
+    /// the relative pose to the keyframe before it is no measurement. Loop closing leaves the
+    /// odometry edge across such a boundary out of the pose graph and removes the entry once
+    /// a loop joins the two segments. The first keyframe of the map is implicit.
+    pub segment_starts: BTreeSet<u64>,
 }
 
 impl Map {
@@ -283,6 +289,178 @@ impl Map {
         ids
     }
 }
+
+// --- keyframe culling and map checks (issue 10) ---
+impl Map {
+    /// The map segment of keyframe `kf`: the first keyframe of its segment (the largest
+    /// [`Map::segment_starts`] entry not after it, or the map's first keyframe).
+    pub fn segment_of(&self, kf: u64) -> u64 {
+        match self.segment_starts.range(..=kf).next_back() {
+            Some(&s) => s,
+            None => self.keyframes.keys().next().copied().unwrap_or(0),
+        }
+    }
+
+    /// Removes keyframe `kf` as redundant and keeps everything that referred to it valid:
+    /// its observations are removed (points left without any observer are removed too,
+    /// points it created take their oldest remaining observer as reference), trajectory
+    /// records stored relative to it are re-expressed relative to `substitute` (their world
+    /// poses do not change), and covisibility is updated. Returns `false` (and changes
+    /// nothing) when `kf` or `substitute` is missing or they are the same. The caller keeps
+    /// the place database in step and never culls the keyframes the tracker refers to, loop
+    /// keyframes or segment starts (see `mapping::cull_keyframes`).
+    pub fn cull_keyframe(&mut self, kf: u64, substitute: u64) -> bool {
+        if kf == substitute || !self.keyframes.contains_key(&substitute) {
+            return false;
+        }
+        let Some(k) = self.keyframes.get(&kf) else {
+            return false;
+        };
+        let world_from_kf = k.world_from_cam;
+        let points: Vec<u64> = k.points.iter().flatten().copied().collect();
+        let substitute_from_world = self.keyframes[&substitute].world_from_cam.inverse();
+        let substitute_from_kf = substitute_from_world * world_from_kf;
+        for r in self.trajectory.iter_mut().filter(|r| r.keyframe == kf) {
+            r.keyframe = substitute;
+            r.kf_from_cam = substitute_from_kf * r.kf_from_cam;
+        }
+        for p in points {
+            self.remove_observation(kf, p);
+            let Some(point) = self.points.get_mut(&p) else {
+                continue;
+            };
+            match point.observations.keys().next().copied() {
+                None => {
+                    self.points.remove(&p);
+                }
+                Some(oldest) => {
+                    if point.first_keyframe == kf {
+                        point.first_keyframe = oldest;
+                    }
+                    self.update_normal(p);
+                }
+            }
+        }
+        // Covisibility entries vanish with the last shared observation; drop any leftover.
+        for other in self.keyframes.values_mut() {
+            other.covisible.remove(&kf);
+        }
+        self.keyframes.remove(&kf);
+        true
+    }
+
+    /// Checks the map's internal consistency and returns every violation found (empty when
+    /// consistent): observations and keypoint slots agree both ways and point at existing
+    /// keyframes, points and keypoints; covisibility weights equal the number of shared
+    /// points, symmetric, with no zero or dangling entries; each point has an observer and an
+    /// existing reference keyframe; trajectory records, loops and segment starts refer to
+    /// existing keyframes; ids are below the id counters. Used by tests and after culling in
+    /// debug builds.
+    pub fn check_invariants(&self) -> Vec<String> {
+        let mut errors = Vec::new();
+        let mut shared: BTreeMap<(u64, u64), u32> = BTreeMap::new();
+        for (&id, p) in &self.points {
+            if p.id != id || id >= self.next_point {
+                errors.push(format!(
+                    "point {id}: id field {} / counter {}",
+                    p.id, self.next_point
+                ));
+            }
+            if p.observations.is_empty() {
+                errors.push(format!("point {id}: no observations"));
+            }
+            if !self.keyframes.contains_key(&p.first_keyframe) {
+                errors.push(format!(
+                    "point {id}: reference keyframe {} missing",
+                    p.first_keyframe
+                ));
+            }
+            for (&kf, &f) in &p.observations {
+                match self.keyframes.get(&kf) {
+                    None => errors.push(format!("point {id}: observed by missing keyframe {kf}")),
+                    Some(k) if k.points.get(f as usize).copied().flatten() != Some(id) => errors
+                        .push(format!(
+                            "point {id}: keyframe {kf} keypoint {f} does not hold it"
+                        )),
+                    Some(_) => {}
+                }
+            }
+            let observers: Vec<u64> = p.observations.keys().copied().collect();
+            for (i, &a) in observers.iter().enumerate() {
+                for &b in &observers[i + 1..] {
+                    *shared.entry((a, b)).or_insert(0) += 1;
+                    *shared.entry((b, a)).or_insert(0) += 1;
+                }
+            }
+        }
+        for (&id, k) in &self.keyframes {
+            if k.id != id || id >= self.next_keyframe {
+                errors.push(format!(
+                    "keyframe {id}: id field {} / counter {}",
+                    k.id, self.next_keyframe
+                ));
+            }
+            if k.points.len() != k.keypoints.len() || k.u_right.len() != k.keypoints.len() {
+                errors.push(format!(
+                    "keyframe {id}: per-keypoint arrays differ in length"
+                ));
+            }
+            for (f, p) in k.points.iter().enumerate() {
+                let Some(p) = p else { continue };
+                match self.points.get(p) {
+                    None => errors.push(format!(
+                        "keyframe {id}: keypoint {f} holds missing point {p}"
+                    )),
+                    Some(q) if q.observations.get(&id) != Some(&(f as u32)) => {
+                        errors.push(format!(
+                            "keyframe {id}: keypoint {f} holds point {p}, which does not list it"
+                        ))
+                    }
+                    Some(_) => {}
+                }
+            }
+            for (&o, &w) in &k.covisible {
+                let expected = shared.get(&(id, o)).copied().unwrap_or(0);
+                if w != expected || o == id {
+                    errors.push(format!(
+                        "keyframe {id}: covisibility with {o} is {w}, {expected} shared points"
+                    ));
+                }
+            }
+        }
+        for (&(a, b), &w) in &shared {
+            if self
+                .keyframes
+                .get(&a)
+                .is_some_and(|k| !k.covisible.contains_key(&b))
+            {
+                errors.push(format!(
+                    "keyframe {a}: covisibility with {b} ({w} shared points) missing"
+                ));
+            }
+        }
+        for (i, r) in self.trajectory.iter().enumerate() {
+            if !self.keyframes.contains_key(&r.keyframe) {
+                errors.push(format!(
+                    "trajectory record {i}: keyframe {} missing",
+                    r.keyframe
+                ));
+            }
+        }
+        for (a, b) in &self.loops {
+            if !self.keyframes.contains_key(a) || !self.keyframes.contains_key(b) {
+                errors.push(format!("loop ({a}, {b}): a keyframe is missing"));
+            }
+        }
+        for s in &self.segment_starts {
+            if !self.keyframes.contains_key(s) {
+                errors.push(format!("segment start {s}: keyframe missing"));
+            }
+        }
+        errors
+    }
+}
+// --- end keyframe culling and map checks ---
 
 fn decrement(kf: Option<&mut Keyframe>, other: u64) {
     if let Some(k) = kf {

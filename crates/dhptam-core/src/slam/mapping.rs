@@ -5,7 +5,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::RwLock;
+use std::sync::{Mutex, RwLock};
 
 use nalgebra::{Vector2, Vector3};
 use rayon::prelude::*;
@@ -16,6 +16,7 @@ use super::{read_lock, write_lock, StereoCalibration};
 use crate::config::{MappingConfig, TrackingConfig, TriangulationConfig};
 use crate::error::Result;
 use crate::matching::best_two;
+use crate::place::PlaceDatabase;
 use crate::solver::{
     solve_stereo_ba, BaKeyframe, BaObservation, LmOptions, Loss, StereoBaOptions, Termination,
 };
@@ -31,8 +32,11 @@ pub struct MappingReport {
     pub points: usize,
     /// Observations removed as outliers.
     pub outliers_removed: usize,
-    /// Points culled.
+    /// Points culled (too few observers, or rarely found when predicted visible).
     pub culled: usize,
+    /// Of `culled`: points removed because the window's keyframes rarely observe them where
+    /// they project into their view ([`MappingConfig::min_found_ratio`]).
+    pub culled_unfound: usize,
     /// Whether the bundle adjustment was interrupted by a newer keyframe.
     pub interrupted: bool,
 }
@@ -155,15 +159,27 @@ pub fn local_mapping(
             report.outliers_removed += 1;
         }
     }
-    // 4. Cull points observed by too few keyframes once they had the chance to be seen.
+    // 4. Cull points observed by too few keyframes once they had the chance to be seen, and
+    // points the window's keyframes rarely find where they predict them.
+    let window: Vec<u64> = kf_ids
+        .iter()
+        .zip(&kfs)
+        .filter(|(_, k)| !k.fixed)
+        .map(|(id, _)| *id)
+        .collect();
     for id in &point_ids {
         let Some(p) = m.points.get(id) else {
             continue;
         };
         let old = kf.saturating_sub(p.first_keyframe) >= cfg.cull_after_keyframes as u64;
-        if p.observations.is_empty() || (old && p.observations.len() < cfg.min_observers as usize) {
+        let unfound = old && rarely_found(&m, *id, &window, calib, tracking, tri, cfg);
+        if p.observations.is_empty()
+            || (old && p.observations.len() < cfg.min_observers as usize)
+            || unfound
+        {
             m.remove_point(*id);
             report.culled += 1;
+            report.culled_unfound += unfound as usize;
         } else {
             m.update_normal(*id);
         }
@@ -171,6 +187,158 @@ pub fn local_mapping(
     log::debug!("mapping: keyframe {kf}: {report:?}");
     Ok(report)
 }
+
+/// Whether the keyframes `window` observe point `id` in less than
+/// [`MappingConfig::min_found_ratio`] of those whose view it projects into (inside the image,
+/// within the depth limits and the viewing-angle limit of tracking), counting only when at
+/// least [`MIN_PREDICTIONS`] keyframes predict it. Keyframes that observe the point count as
+/// predicting it.
+fn rarely_found(
+    map: &Map,
+    id: u64,
+    window: &[u64],
+    calib: &StereoCalibration,
+    tracking: &TrackingConfig,
+    tri: &TriangulationConfig,
+    cfg: &MappingConfig,
+) -> bool {
+    if cfg.min_found_ratio <= 0.0 {
+        return false;
+    }
+    let Some(p) = map.points.get(&id) else {
+        return false;
+    };
+    let cos_max = tracking.max_view_angle_deg.to_radians().cos();
+    let (w, h) = (calib.width as f64, calib.height as f64);
+    let (mut predicted, mut found) = (0usize, 0usize);
+    for k in window.iter().filter_map(|k| map.keyframes.get(k)) {
+        if p.observations.contains_key(&k.id) {
+            predicted += 1;
+            found += 1;
+            continue;
+        }
+        let pc = k.world_from_cam.inverse().transform_point(&p.position);
+        if pc.z < tri.min_depth_m || pc.z > tri.max_depth_m {
+            continue;
+        }
+        let u = calib.fx * pc.x / pc.z + calib.cx;
+        let v = calib.fy * pc.y / pc.z + calib.cy;
+        let ray = p.position - k.centre();
+        if u >= 0.0 && v >= 0.0 && u < w && v < h && ray.dot(&p.normal) >= cos_max * ray.norm() {
+            predicted += 1;
+        }
+    }
+    predicted >= MIN_PREDICTIONS && (found as f64) < cfg.min_found_ratio * predicted as f64
+}
+
+/// Keyframes that must predict a point before its found ratio can condemn it.
+pub const MIN_PREDICTIONS: usize = 3;
+
+// --- keyframe culling (issue 10) ---
+/// What one keyframe-culling step did.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CullReport {
+    /// Keyframes examined.
+    pub examined: usize,
+    /// Keyframes removed as redundant (ids).
+    pub removed: Vec<u64>,
+}
+
+/// The fraction of keyframe `id`'s map points that at least
+/// [`MappingConfig::redundant_observers`] other keyframes observe from no farther than
+/// [`MappingConfig::redundant_distance_ratio`] times `id`'s own distance to the point (the
+/// same or a finer image scale); `None` for a keyframe without points.
+pub fn redundancy(map: &Map, id: u64, cfg: &MappingConfig) -> Option<f64> {
+    let k = map.keyframes.get(&id)?;
+    let centre = k.centre();
+    let (mut total, mut redundant) = (0usize, 0usize);
+    for pid in k.points.iter().flatten() {
+        let Some(p) = map.points.get(pid) else {
+            continue;
+        };
+        total += 1;
+        let reach = cfg.redundant_distance_ratio * (p.position - centre).norm();
+        let others = p
+            .observations
+            .keys()
+            .filter(|&&o| o != id)
+            .filter_map(|o| map.keyframes.get(o))
+            .filter(|o| (p.position - o.centre()).norm() <= reach)
+            .count();
+        if others >= cfg.redundant_observers as usize {
+            redundant += 1;
+        }
+    }
+    (total > 0).then(|| redundant as f64 / total as f64)
+}
+
+/// Removes the keyframes covisible with `kf` (and older than it) that are redundant: at least
+/// [`MappingConfig::redundant_fraction`] of their points are seen by enough other keyframes at
+/// the same or a finer scale ([`redundancy`]; ORB-SLAM's rule). Never removed: the map's first
+/// keyframe, keyframes of accepted loops, first keyframes of map segments, and `kf` and newer
+/// keyframes (not mapped yet; the tracker's reference is the newest), and keyframes younger
+/// than [`MappingConfig::cull_min_age`] keyframes. A removed keyframe's
+/// observations, trajectory records and covisibility are handed over by
+/// [`Map::cull_keyframe`] (records to its most covisible keyframe) and its place-database
+/// entry is removed. Candidates are examined oldest first, each against the map as the
+/// previous removals left it.
+pub fn cull_keyframes(
+    map: &RwLock<Map>,
+    place: &Mutex<PlaceDatabase>,
+    kf: u64,
+    cfg: &MappingConfig,
+) -> CullReport {
+    let mut report = CullReport::default();
+    if !cfg.cull_keyframes {
+        return report;
+    }
+    let mut m = write_lock(map);
+    let Some(k) = m.keyframes.get(&kf) else {
+        return report;
+    };
+    let first = m.keyframes.keys().next().copied();
+    let protected: BTreeSet<u64> = m
+        .loops
+        .iter()
+        .flat_map(|&(a, b)| [a, b])
+        .chain(m.segment_starts.iter().copied())
+        .chain(first)
+        .collect();
+    let candidates: Vec<u64> = k
+        .covisible
+        .keys()
+        .copied()
+        .filter(|&c| c.saturating_add(cfg.cull_min_age as u64) <= kf && c < kf)
+        .filter(|c| !protected.contains(c))
+        .collect();
+    for c in candidates {
+        report.examined += 1;
+        let Some(r) = redundancy(&m, c, cfg) else {
+            continue;
+        };
+        if r < cfg.redundant_fraction {
+            continue;
+        }
+        let Some(substitute) = m
+            .keyframes
+            .get(&c)
+            .and_then(|k| k.best_covisible(1).first().copied())
+        else {
+            continue;
+        };
+        if m.cull_keyframe(c, substitute) {
+            super::lock(place).remove(c);
+            log::debug!(
+                "mapping: keyframe {kf}: keyframe {c} culled ({:.0} % of its points redundant; \
+                 its frames now refer to keyframe {substitute})",
+                100.0 * r
+            );
+            report.removed.push(c);
+        }
+    }
+    report
+}
+// --- end keyframe culling ---
 
 /// What one fusion step did.
 #[derive(Clone, Debug, Default, PartialEq)]

@@ -25,6 +25,7 @@ use crate::geometry::Se3;
 use crate::solver::StereoIntrinsics;
 
 pub use map::{FrameRecord, Keyframe, Map, MapPoint};
+pub use mapping::{cull_keyframes, redundancy, CullReport};
 pub use mapping::{fuse_and_refind, local_mapping, FusionReport, MappingReport};
 pub use system::{FrameFeatures, FusionTotals, StageStats, System, TrackingTotals};
 pub use tracking::Bridge;

@@ -1,8 +1,9 @@
 //! Saving and loading a map with the tracker state: a little-endian binary file.
 //!
-//! Layout: the magic `DHPTAMAP`, a `u32` version (1), the calibration, the descriptor kind
-//! and width, the tracker state, the id counters, the keyframes, the map points, the loops
-//! and the trajectory. Poses are stored as translation (3 × f64) and quaternion x-y-z-w
+//! Layout: the magic `DHPTAMAP`, a `u32` version (2), the calibration, the descriptor kind
+//! and width, the tracker state, the id counters, the keyframes, the map points, the loops,
+//! the trajectory and (since version 2) the first keyframes of unjoined map segments.
+//! Version-1 files (no segment list) are still read. Poses are stored as translation (3 × f64) and quaternion x-y-z-w
 //! (4 × f64) of `world_from_cam` / `kf_from_cam`. The file is written to `<path>.tmp` and
 //! renamed, so a crash never leaves a truncated map under the final name.
 
@@ -20,7 +21,7 @@ use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors, OwnedDescriptors};
 
 const MAGIC: &[u8; 8] = b"DHPTAMAP";
-const VERSION: u32 = 1;
+const VERSION: u32 = 2;
 
 struct Writer(Vec<u8>);
 
@@ -247,6 +248,10 @@ pub(crate) fn save(
         w.u64(r.keyframe);
         w.se3(&r.kf_from_cam);
     }
+    w.u64(map.segment_starts.len() as u64);
+    for s in &map.segment_starts {
+        w.u64(*s);
+    }
     let tmp = path.with_extension("tmp");
     let io = |action: &'static str, p: &Path| {
         let p = p.to_owned();
@@ -304,7 +309,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         return Err(r.corrupt("not a dhptam map (magic DHPTAMAP missing)"));
     }
     let version = r.u32()?;
-    if version != VERSION {
+    if version != VERSION && version != 1 {
         return Err(r.corrupt(&format!(
             "map version {version}, this build reads {VERSION}"
         )));
@@ -427,6 +432,12 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
             keyframe: r.u64()?,
             kf_from_cam: r.se3()?,
         });
+    }
+    if version >= 2 {
+        let n = r.len("segment start")?;
+        for _ in 0..n {
+            map.segment_starts.insert(r.u64()?);
+        }
     }
     if r.at != data.len() {
         return Err(r.corrupt("trailing bytes"));

@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
 use std::sync::{Arc, Mutex, RwLock};
 use std::thread::JoinHandle;
@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
-use super::mapping::{fuse_and_refind, local_mapping};
+use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
     bootstrap, bridge_keyframe, commit_tracked, last_pose, reinitialise, stereo_match,
     track_local_map, Bridge, StereoFrame, TrackContext, TrackerState,
@@ -69,6 +69,8 @@ pub(crate) struct Shared {
     pub(crate) place: Mutex<PlaceDatabase>,
     /// Running totals of the mapping fusion.
     pub(crate) fusion: Mutex<FusionTotals>,
+    /// Keyframes removed as redundant by the mapping thread so far.
+    pub(crate) culled_keyframes: AtomicU64,
 }
 
 /// Running totals of the mapping thread's fusion of duplicate points and re-finding.
@@ -132,6 +134,28 @@ impl Shared {
         if let Err(e) = r {
             log::warn!("mapping: keyframe {kf}: bundle adjustment failed: {e}");
         }
+        // Keyframe culling (issue 10), after the bundle adjustment; it is cheap (one pass over
+        // the covisible keyframes' points under the write lock), so it runs even when a newer
+        // keyframe interrupted the adjustment.
+        if c.mapping.cull_keyframes {
+            let report = self.time("keyframe_culling", || {
+                cull_keyframes(&self.map, &self.place, kf, &c.mapping)
+            });
+            self.culled_keyframes
+                .fetch_add(report.removed.len() as u64, Ordering::Relaxed);
+        }
+        if kf % MAP_SIZE_LOG_EVERY == 0 {
+            let m = read_lock(&self.map);
+            if let Some(k) = m.keyframes.get(&kf) {
+                log::info!(
+                    "mapping: map at t={} ns: {} keyframes, {} points ({} keyframes culled so far)",
+                    k.t_ns,
+                    m.keyframes.len(),
+                    m.points.len(),
+                    self.culled_keyframes.load(Ordering::Relaxed)
+                );
+            }
+        }
     }
 
     /// Loop detection and correction for keyframe `kf` (failures are logged).
@@ -165,6 +189,9 @@ pub struct TrackingTotals {
     /// Frames relocalised against an older keyframe.
     pub relocalisations: u64,
 }
+
+/// The mapping thread logs the map's size (INFO) after every this many keyframe ids.
+const MAP_SIZE_LOG_EVERY: u64 = 20;
 
 /// The SLAM system. See the module documentation.
 pub struct System {
@@ -224,6 +251,7 @@ impl System {
             config,
             place: Mutex::new(PlaceDatabase::new()),
             fusion: Mutex::new(FusionTotals::default()),
+            culled_keyframes: AtomicU64::new(0),
         });
         let mut system = Self {
             shared,
@@ -594,6 +622,16 @@ impl System {
     /// Totals of the fusion of duplicate points and of re-finding, since the start.
     pub fn fusion_totals(&self) -> FusionTotals {
         *lock(&self.shared.fusion)
+    }
+
+    /// Keyframes removed as redundant by the mapping thread since the start.
+    pub fn culled_keyframes(&self) -> u64 {
+        self.shared.culled_keyframes.load(Ordering::Relaxed)
+    }
+
+    /// The place database's keyframe ids, ascending (for consistency checks in tests).
+    pub fn place_ids(&self) -> Vec<u64> {
+        lock(&self.shared.place).ids()
     }
 
     /// The tracker's state (last frame, velocity, reference keyframe).

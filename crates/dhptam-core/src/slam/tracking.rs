@@ -495,6 +495,7 @@ pub fn reinitialise(
         remove_keyframe(map, id);
         return None;
     }
+    map.segment_starts.insert(id);
     log::info!(
         "tracking: t={} ns: neither tracked nor relocalised; new map segment (keyframe {id}, \
          {count} points) at the constant-velocity pose",
