@@ -27,6 +27,7 @@ import io
 import json
 import logging
 import queue
+import signal
 import tempfile
 import threading
 import time
@@ -598,48 +599,99 @@ def _track_all(
     fused = _stage(indices, front, "frontend", 2)
     extracted = _stage(fused, extract, "extraction", 2)
     bar = _progress(frontend.stop - frontend.start, progress, f"dhptam {frontend.mode}")
+    with _interrupts_between_frames() as interrupt_pending:
+        try:
+            _track_frames(extracted, system, outputs, states, realtime, bar, sink, interrupt_pending)
+        finally:
+            extracted.close()
+            if bar is not None:
+                bar.close()
+
+
+def _track_frames(
+    extracted: Any,
+    system: Any,
+    outputs: _Outputs,
+    states: Counter[str],
+    realtime: bool,
+    bar: Any,
+    sink: Any,
+    interrupt_pending: Callable[[], bool],
+) -> None:
+    """The tracking loop on the caller's thread: one frame tracked and recorded per step; a
+    Ctrl-C takes effect between frames, so the trajectory and ``frames.csv`` hold the same
+    frames."""
     wall0 = time.perf_counter()
     t_first: int | None = None
     last: tuple[int, Any] | None = None  # (frame index, (left, right) features it was tracked with)
-    try:
-        for frame, t_front, left, right, t_extract, bridge in extracted:
-            if realtime:
-                t_first = frame.t_ns if t_first is None else t_first
-                wait = (frame.t_ns - t_first) / _NS - (time.perf_counter() - wall0)
-                if wait > 0:
-                    time.sleep(wait)
-            if outputs.recorder is not None:
-                outputs.recorder.add_frame(frame.index)
-            t0 = time.perf_counter()
-            r, bridged = _track_bridged(system, frame, (left, right), bridge, last)
-            last = (frame.index, (left, right))
-            t_track = time.perf_counter() - t0
-            states[r.state] += 1
-            sink.frame(frame, left, right, r)
-            outputs.record(
-                {
-                    "index": frame.index,
-                    "t_s": f"{frame.t_ns / _NS:.9f}",
-                    "state": r.state,
-                    "inliers": r.inliers,
-                    "keyframe": int(r.keyframe),
-                    "keypoints_left": len(left.keypoints),
-                    "keypoints_right": len(right.keypoints),
-                    "beta_left": f"{frame.beta_left:.4f}",
-                    "bias": frame.bias,
-                    "bridge": bridged,
-                    "frontend_s": round(t_front, 6),
-                    "extraction_s": round(t_extract, 6),
-                    "tracking_s": round(t_track, 6),
-                }
-            )
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(f"{r.state} {r.inliers} inl", refresh=False)
-    finally:
-        extracted.close()
+    for frame, t_front, left, right, t_extract, bridge in extracted:
+        if interrupt_pending():
+            raise KeyboardInterrupt
+        if realtime:
+            t_first = frame.t_ns if t_first is None else t_first
+            wait = (frame.t_ns - t_first) / _NS - (time.perf_counter() - wall0)
+            if wait > 0:
+                time.sleep(wait)
+        if outputs.recorder is not None:
+            outputs.recorder.add_frame(frame.index)
+        t0 = time.perf_counter()
+        r, bridged = _track_bridged(system, frame, (left, right), bridge, last)
+        last = (frame.index, (left, right))
+        t_track = time.perf_counter() - t0
+        states[r.state] += 1
+        sink.frame(frame, left, right, r)
+        outputs.record(
+            {
+                "index": frame.index,
+                "t_s": f"{frame.t_ns / _NS:.9f}",
+                "state": r.state,
+                "inliers": r.inliers,
+                "keyframe": int(r.keyframe),
+                "keypoints_left": len(left.keypoints),
+                "keypoints_right": len(right.keypoints),
+                "beta_left": f"{frame.beta_left:.4f}",
+                "bias": frame.bias,
+                "bridge": bridged,
+                "frontend_s": round(t_front, 6),
+                "extraction_s": round(t_extract, 6),
+                "tracking_s": round(t_track, 6),
+            }
+        )
         if bar is not None:
-            bar.close()
+            bar.update(1)
+            bar.set_postfix_str(f"{r.state} {r.inliers} inl", refresh=False)
+    if interrupt_pending():
+        raise KeyboardInterrupt
+
+
+@contextmanager
+def _interrupts_between_frames() -> Iterator[Callable[[], bool]]:
+    """Defers Ctrl-C in the tracking loop to the next frame boundary.
+
+    The first SIGINT only sets a flag, which the loop checks before each frame (and once after
+    the last), so a frame is either tracked and recorded or not started: the trajectory and
+    ``frames.csv`` always hold the same frames (the handler does nothing else: no logging
+    from inside a signal handler). A second SIGINT interrupts at once. Off the
+    main thread, or when the caller installed its own SIGINT handler, nothing changes.
+    """
+    pending = [False]
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
+        yield lambda: False
+        return
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        if pending[0]:
+            raise KeyboardInterrupt
+        pending[0] = True
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield lambda: pending[0]
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _track_bridged(
