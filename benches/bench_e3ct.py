@@ -13,15 +13,22 @@ anything is timed. The window is the criterion bench's kind: µs-quantised sorte
 50 ms, 70 % of the events on a few hundred line segments, 30 % uniform. dhptam uses the rayon
 pool of the process: set ``RAYON_NUM_THREADS`` to pin it (the script prints it).
 
-    python benches/bench_e3ct.py [--events 1000000] [--repeats 7]
+``--previous PATH`` adds a row for another build of ``dhptam._core`` (e.g. a copy of the
+extension built from an earlier commit), loaded side by side in the same process and checked
+equal too: the ratio against the previous kernel comes from the same run.
+
+    python benches/bench_e3ct.py [--events 1000000] [--repeats 7] [--previous OLD/_core.abi3.so]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.machinery
+import importlib.util
 import os
 import platform
 import time
+from types import ModuleType
 
 import numpy as np
 
@@ -76,6 +83,17 @@ def numpy_bincount(x, y, t, p) -> np.ndarray:
     return out.reshape(H, W, 3)
 
 
+def load_previous(path: str) -> ModuleType:
+    """Loads another build of the ``_core`` extension under its own module object."""
+    loader = importlib.machinery.ExtensionFileLoader("_core", path)
+    spec = importlib.util.spec_from_file_location("_core", path, loader=loader)
+    if spec is None:
+        raise SystemExit(f"--previous {path}: not a loadable extension module")
+    module = importlib.util.module_from_spec(spec)
+    loader.exec_module(module)
+    return module
+
+
 def best_of(fn, repeats: int) -> tuple[float, float]:
     """Smallest wall time and smallest process CPU time (all threads) over ``repeats`` runs.
 
@@ -94,6 +112,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--events", type=int, default=1_000_000)
     ap.add_argument("--repeats", type=int, default=7)
+    ap.add_argument("--previous", help="another build of dhptam._core to time as the previous kernel")
     args = ap.parse_args()
     x, y, t, p = window(args.events)
 
@@ -106,6 +125,14 @@ def main() -> None:
 
     t_ours = best_of(ours, args.repeats)
     rows = [("dhptam e3ct", t_ours)]
+    if args.previous:
+        previous = load_previous(args.previous)
+
+        def theirs() -> np.ndarray:
+            return previous._e3ct(x, y, t, p, W, H, 0, SPAN_NS, 0.5, 30.0, 3, "both")
+
+        np.testing.assert_allclose(mine, theirs(), rtol=1e-5, atol=1e-6, err_msg="previous kernel")
+        rows.append(("previous kernel", best_of(theirs, args.repeats)))
     for name, fn in (("numpy add.at", numpy_add_at), ("numpy bincount", numpy_bincount)):
         rows.append((name, best_of(lambda fn=fn: fn(x, y, t, p), max(3, args.repeats // 2))))
     print(

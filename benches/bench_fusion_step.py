@@ -9,6 +9,11 @@ target for the whole step is ≤ 10 ms on 2 cores. Prints a Markdown table (best
 ``--repeats`` per stage and for the whole step, wall time and the process CPU time of all
 threads, which a shared machine inflates less) with the rayon thread count and the load.
 
+A second table times the same step with the one-pass stages, checked equal to the staged
+pipeline's fused images first: rectification inside the E3CT pass (``EventRectifier.e3ct``),
+the shared scales only (``_e3ct_scales``), and normalise + warp + blend in one pass over the
+frame pixels (``_fuse_frame``); ``staged / one-pass`` is the ratio of the whole steps.
+
     python benches/bench_fusion_step.py [--repeats 7]
     RAYON_NUM_THREADS=1 python benches/bench_fusion_step.py
 """
@@ -54,6 +59,7 @@ def main() -> None:
     def now() -> tuple[float, float]:
         return time.perf_counter(), time.process_time()
 
+    fused_staged: list[np.ndarray] = []
     for _ in range(args.repeats):
         t0 = now()
         rectified = [r.apply(*s, 0, SPAN_NS) for r, s in zip(rectifiers, sides, strict=True)]
@@ -67,8 +73,7 @@ def main() -> None:
             for t in tensors
         ]
         t4 = now()
-        for f, d in zip(frames, warped, strict=True):
-            fuse(f, d, choose_beta(f).beta)
+        fused_staged = [fuse(f, d, choose_beta(f).beta) for f, d in zip(frames, warped, strict=True)]
         t5 = now()
         marks = (t0, t1, t2, t3, t4, t5)
         spans = [(marks[k], marks[k + 1]) for k in range(5)] + [(t0, t5)]
@@ -84,6 +89,39 @@ def main() -> None:
     print("|---|---:|---:|")
     for key in names:
         print(f"| {key} | {min(stages[key]) * 1e3:.1f} | {min(cpu[key]) * 1e3:.1f} |")
+
+    one_pass = ("2 × (rectify + e3ct)", "scales", "2 × (β + normalise + warp + fuse)", "total")
+    o_wall: dict[str, list[float]] = {k: [] for k in one_pass}
+    o_cpu: dict[str, list[float]] = {k: [] for k in one_pass}
+    for _ in range(args.repeats):
+        t0 = now()
+        raw = [r.e3ct(*s, 0, SPAN_NS) for r, s in zip(rectifiers, sides, strict=True)]
+        t1 = now()
+        scales = _core._e3ct_scales(raw, 99.0)
+        t2 = now()
+        fused = [
+            _core._fuse_frame(
+                f, d, scales, k_event, k_frame, frame_from_event, 2.0, (0.0, 0.0), choose_beta(f).beta
+            )
+            for f, d in zip(frames, raw, strict=True)
+        ]
+        t3 = now()
+        marks = (t0, t1, t2, t3)
+        spans = [(marks[k], marks[k + 1]) for k in range(3)] + [(t0, t3)]
+        for key, (a, b) in zip(one_pass, spans, strict=True):
+            o_wall[key].append(b[0] - a[0])
+            o_cpu[key].append(b[1] - a[1])
+    for a, b in zip(fused, fused_staged, strict=True):
+        np.testing.assert_array_equal(a, b)
+    print()
+    print(f"one-pass stages, fused images equal to the staged ones; load average {os.getloadavg()[0]:.1f}")
+    print("| stage | wall [ms] | CPU, all threads [ms] |")
+    print("|---|---:|---:|")
+    for key in one_pass:
+        print(f"| {key} | {min(o_wall[key]) * 1e3:.1f} | {min(o_cpu[key]) * 1e3:.1f} |")
+    ratio_wall = min(stages["total"]) / min(o_wall["total"])
+    ratio_cpu = min(cpu["total"]) / min(o_cpu["total"])
+    print(f"| staged / one-pass (whole step) | {ratio_wall:.1f}× | {ratio_cpu:.1f}× |")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 //! depth, and the online β / fusion.
 
 use dhptam_core::config::{FusionConfig, RectificationConfig};
-use dhptam_core::events::EventSlice;
+use dhptam_core::events::{channel_scales, e3ct, scaled, E3ctParams, E3ctWorkspace, EventSlice};
 use dhptam_core::fusion::{
     choose_beta, fuse, fuse_e3ct, intensity_from_e3ct, Bias, Depth, EventFrameWarp, EventRectifier,
     FusionMode,
@@ -408,4 +408,148 @@ fn beta_statistics_and_one_pass_fusion_equal_their_plain_forms_on_random_images(
     }
     assert!(fuse_e3ct(&frame, &e3ct[..w * h * 2], 3, 0.5).is_err());
     assert!(fuse_e3ct(&frame, &e3ct, 3, -0.1).is_err());
+}
+
+/// The E3CT (default parameters, window `[0, span_ns)`) added event by event in input order,
+/// weights in f64 as `docs/E3CT.md` writes them: the reference the kernels must equal bit
+/// for bit.
+fn direct_e3ct(ev: &EventSlice<'_>, w: usize, h: usize, span_ns: i64) -> Vec<f32> {
+    let mut out = vec![0f32; w * h * 3];
+    for k in 0..ev.len() {
+        let age_ms = (span_ns - ev.t_ns[k]) as f64 * 1e-6;
+        let z = (age_ms - 15.0) * (6.0 / 30.0);
+        let v1 = (-0.5 * z * z).exp();
+        let s = ev.t_ns[k] as f64 / span_ns as f64 * 2.0;
+        let i = (s as usize).min(1);
+        let f = s - i as f64;
+        let at = (usize::from(ev.y[k]) * w + usize::from(ev.x[k])) * 3 + i;
+        out[at] += (v1 * (1.0 - f)) as f32;
+        out[at + 1] += (v1 * f) as f32;
+    }
+    out
+}
+
+#[test]
+fn rectified_e3ct_in_one_pass_is_the_e3ct_of_the_rectified_events_bit_for_bit() {
+    // Raw µs-stamped events over 50 ms, some leaving the rectified view; several segments
+    // (more than 65,536 distinct stamps with ns stamps) and thread counts.
+    let rig = rig();
+    let rect = rectified(&rig.event, &rig.event_from_rig);
+    let lut = EventRectifier::new(&rect, Side::Left);
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let n = 300_000;
+    let span = 50_000_000i64;
+    for stamp_ns in [1000i64, 1] {
+        let mut t: Vec<i64> = (0..n)
+            .map(|_| rng.random_range(0..span / stamp_ns) * stamp_ns)
+            .collect();
+        t.sort_unstable();
+        let x: Vec<u16> = (0..n).map(|_| rng.random_range(0..1280u16)).collect();
+        let y: Vec<u16> = (0..n).map(|_| rng.random_range(0..720u16)).collect();
+        let p: Vec<i8> = (0..n).map(|_| rng.random_range(0..2i8)).collect();
+        let events = EventSlice::new(&x, &y, &t, &p).unwrap();
+        let params = E3ctParams::default();
+        let (w, h) = (rect.width, rect.height);
+        let rectified = lut.apply(&events, 0, span).unwrap();
+        assert!(rectified.t_ns.len() < n);
+        let want = direct_e3ct(&rectified.as_slice(), w as usize, h as usize, span);
+        let banded = e3ct(&rectified.as_slice(), w, h, 0, span, &params).unwrap();
+        assert!(banded
+            .iter()
+            .zip(&want)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            let mut out = vec![f32::NAN; want.len()];
+            let mut workspace = E3ctWorkspace::default();
+            // Twice with the same workspace: reused scratch memory gives the same bits.
+            for _ in 0..2 {
+                pool.install(|| lut.e3ct_into(&events, 0, span, &params, &mut workspace, &mut out))
+                    .unwrap();
+                let differ = out
+                    .iter()
+                    .zip(&want)
+                    .filter(|(a, b)| a.to_bits() != b.to_bits())
+                    .count();
+                assert_eq!(differ, 0, "stamps {stamp_ns} ns, {threads} threads");
+            }
+        }
+        assert!(want.iter().map(|&v| f64::from(v)).sum::<f64>() > 1000.0);
+    }
+    // Raw pixels outside the raw image are errors, as in `apply`.
+    let bad = ([1280u16], [0u16], [0i64], [1i8]);
+    let events = EventSlice::new(&bad.0, &bad.1, &bad.2, &bad.3).unwrap();
+    let mut out = vec![0f32; (rect.width * rect.height * 3) as usize];
+    let params = E3ctParams::default();
+    let mut workspace = E3ctWorkspace::default();
+    assert!(lut
+        .e3ct_into(&events, 0, 10, &params, &mut workspace, &mut out)
+        .is_err());
+}
+
+#[test]
+fn one_pass_frame_fusion_is_normalise_warp_and_blend_bit_for_bit() {
+    let k_event = dhptam_core::geometry::Pinhole {
+        fx: 500.0,
+        fy: 500.0,
+        cx: 63.5,
+        cy: 47.5,
+    };
+    let k_frame = dhptam_core::geometry::Pinhole {
+        fx: 560.0,
+        fy: 560.0,
+        cx: 50.0,
+        cy: 40.0,
+    };
+    let frame_from_event = Se3::new(
+        So3::exp(&Vector3::new(0.01, -0.02, 0.005)),
+        Vector3::new(0.03, 0.01, 0.0),
+    );
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let (sw, sh, c) = (128usize, 96usize, 3usize);
+    // Sparse raw values, some above the scales (clipped to 1 after scaling).
+    let src: Vec<f32> = (0..sw * sh * c)
+        .map(|_| {
+            if rng.random_bool(0.3) {
+                rng.random_range(0.0..3.0f32)
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let scales = channel_scales(&[&src], c, 99.0).unwrap();
+    let (fw, fh) = (100usize, 80usize);
+    let frame: Vec<u8> = (0..fw * fh).map(|_| rng.random_range(0..=255u8)).collect();
+    for (depth, align) in [
+        (Depth::Plane { depth_m: 1.5 }, Vector2::new(0.7, -1.2)),
+        (Depth::Infinity, Vector2::zeros()),
+    ] {
+        let warp = EventFrameWarp::new(k_event, k_frame, frame_from_event, depth, align).unwrap();
+        let normalised = scaled(&src, &scales).unwrap();
+        let warped = warp.warp_image(&normalised, sw, sh, c, fw, fh).unwrap();
+        for beta in [0.0, 0.3, 0.77, 1.0] {
+            let want = fuse_e3ct(&frame, &warped, c, beta).unwrap();
+            let got = warp
+                .fuse_frame(&frame, fw, fh, &src, sw, sh, &scales, beta)
+                .unwrap();
+            assert_eq!(got, want, "beta {beta}");
+        }
+        // Events actually show through at β = 1 (the test is not comparing two blank images).
+        let events_only = warp
+            .fuse_frame(&frame, fw, fh, &src, sw, sh, &scales, 1.0)
+            .unwrap();
+        assert!(events_only.iter().filter(|&&v| v > 0).count() > fw * fh / 4);
+        assert!(warp
+            .fuse_frame(&frame, fw, fh, &src, sw, sh, &[1.0, 0.0, 1.0], 0.5)
+            .is_err());
+        assert!(warp
+            .fuse_frame(&frame[1..], fw, fh, &src, sw, sh, &scales, 0.5)
+            .is_err());
+        assert!(warp
+            .fuse_frame(&frame, fw, fh, &src, sw, sh, &scales, 1.5)
+            .is_err());
+    }
 }

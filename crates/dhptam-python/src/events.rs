@@ -96,29 +96,45 @@ pub fn _e3ct<'py>(
     };
     image(py, &(x, y, t_ns, p), width, height, |s| {
         let mut out = vec![0f32; width as usize * height as usize * params.output_channels()];
-        // A pooled workspace: fresh scratch pages for every window cost as much as the pass
-        // that fills them.
-        let mut workspace = WORKSPACES
-            .lock()
-            .ok()
-            .and_then(|mut pool| pool.pop())
-            .unwrap_or_default();
-        let result = events::e3ct_into(
-            s,
-            width,
-            height,
-            t_start_ns,
-            t_end_ns,
-            &params,
-            &mut workspace,
-            &mut out,
-        );
-        if let Ok(mut pool) = WORKSPACES.lock() {
-            if pool.len() < MAX_POOLED_WORKSPACES {
-                pool.push(workspace);
-            }
+        with_workspace(|workspace| {
+            events::e3ct_into(
+                s, width, height, t_start_ns, t_end_ns, &params, workspace, &mut out,
+            )
+        })
+        .map(|()| out)
+    })
+}
+
+/// Runs `f` with a workspace from [`WORKSPACES`] (a fresh one when the pool is empty) and
+/// returns it to the pool: fresh scratch pages for every window cost as much as the pass
+/// that fills them.
+pub(crate) fn with_workspace<R>(f: impl FnOnce(&mut E3ctWorkspace) -> R) -> R {
+    let mut workspace = WORKSPACES
+        .lock()
+        .ok()
+        .and_then(|mut pool| pool.pop())
+        .unwrap_or_default();
+    let result = f(&mut workspace);
+    if let Ok(mut pool) = WORKSPACES.lock() {
+        if pool.len() < MAX_POOLED_WORKSPACES {
+            pool.push(workspace);
         }
-        result.map(|()| out)
+    }
+    result
+}
+
+/// `E3ctParams` from the Python arguments.
+pub(crate) fn e3ct_params(
+    alpha: f64,
+    eta_ms: f64,
+    channels: usize,
+    polarity: &str,
+) -> PyResult<E3ctParams> {
+    Ok(E3ctParams {
+        alpha,
+        eta_ms,
+        channels,
+        polarity: parse_polarity(polarity)?,
     })
 }
 

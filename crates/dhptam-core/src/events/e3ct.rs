@@ -31,7 +31,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::window::EventSlice;
+use super::window::{check_frame, EventSlice};
 use crate::config::EventsConfig;
 use crate::error::{Error, Result};
 
@@ -85,7 +85,7 @@ impl E3ctParams {
         }
     }
 
-    fn check(&self) -> Result<()> {
+    pub(crate) fn check(&self) -> Result<()> {
         if !(self.alpha.is_finite() && self.alpha > 0.0) {
             return Err(Error::invalid("alpha", "a positive number", self.alpha));
         }
@@ -147,28 +147,107 @@ impl Kernel {
     }
 }
 
-/// Bytes of output one band of rows may span: a band stays in the core's L2 cache (2 MiB on
-/// the machines measured, with room for the streamed event lists) while its events are added;
-/// the whole image, 11 MB at 1280×720×3, does not.
-const BAND_BYTES: usize = 512 * 1024;
+/// Output values one band of rows may span: 2¹⁶ `f32` (256 KiB). A band then stays in the
+/// core's L2 cache while its events are added (the whole image, 11 MB at 1280×720×3, does
+/// not), and an event's place inside its band fits the low 16 bits of its [`Packed`] word.
+const BAND_VALUES: usize = 1 << 16;
+
+/// Distinct time stamps one [`Segment`] holds: a stamp's index fits the high 16 bits of a
+/// [`Packed`] word. A chunk with more stamps (windows longer than 65 ms at µs stamps, or
+/// ns stamps) simply fills several segments.
+const SEGMENT_STAMPS: usize = 1 << 16;
 
 /// Fewest events per chunk of the first pass: smaller windows do not pay for a second thread.
 const MIN_CHUNK_EVENTS: usize = 1 << 14;
 
-/// One event after the bucket pass: its first output value inside its band, lower channel
-/// and polarity group included (low 32 bits), and the index of its time stamp in its chunk's
-/// table of votes (high 32 bits).
-type Packed = u64;
+/// One event after the first pass: the index of its time stamp in its segment's vote table
+/// (high 16 bits) and its first output value inside its band, lower channel and polarity
+/// group included (low 16 bits). Four bytes per event, half the memory traffic of a pointer.
+type Packed = u32;
+
+/// A run of one chunk's events whose distinct time stamps share one vote table.
+#[derive(Debug, Default)]
+struct Segment {
+    /// `[V1 (1 − f), V1 f]` of each distinct stamp, in order ([`SEGMENT_STAMPS`] slots).
+    votes: Vec<[f32; 2]>,
+    /// Per band: the segment's events falling into the band, packed, in input order.
+    lists: Vec<Vec<Packed>>,
+}
+
+/// Events one band gathers in its staging line before they move to the band's list: one
+/// 64-byte cache line. Appending to a few dozen lists at once would otherwise miss the cache
+/// on most stores; the staging lines stay in L1 and each list receives whole lines.
+const STAGE: usize = 16;
+
+/// The first-pass output of one chunk of the input.
+#[derive(Debug, Default)]
+struct ChunkScratch {
+    /// Segments in input order; the first `used` hold this window's events.
+    segments: Vec<Segment>,
+    /// Segments filled for the current window.
+    used: usize,
+    /// Per band, the staging line of the current segment and how full it is.
+    stage: Vec<[Packed; STAGE]>,
+    /// Per band, the number of events in its staging line.
+    fill: Vec<usize>,
+    /// The first invalid event of the chunk (global index), if any.
+    bad: Option<usize>,
+}
+
+impl ChunkScratch {
+    /// Starts the next segment, emptied, with one list per band; returns its index.
+    fn next_segment(&mut self, bands: usize) -> usize {
+        if self.used == self.segments.len() {
+            self.segments.push(Segment::default());
+        }
+        let segment = &mut self.segments[self.used];
+        self.used += 1;
+        segment.votes.resize(SEGMENT_STAMPS, [0.0; 2]);
+        segment.lists.resize_with(bands, Vec::new);
+        for list in &mut segment.lists {
+            list.clear();
+        }
+        self.used - 1
+    }
+
+    /// Moves the staged events of every band to the lists of segment `index`.
+    fn flush(&mut self, index: usize) {
+        let lists = &mut self.segments[index].lists;
+        for ((list, line), fill) in lists.iter_mut().zip(&self.stage).zip(&mut self.fill) {
+            list.extend_from_slice(&line[..*fill]);
+            *fill = 0;
+        }
+    }
+}
+
+/// Where a segment's filling stands: its stamps so far and the packed stamp of the last one.
+struct Stamps {
+    count: usize,
+    last_t: i64,
+    lower: Packed,
+}
+
+impl Stamps {
+    fn new() -> Self {
+        Self {
+            count: 0,
+            last_t: i64::MIN,
+            lower: 0,
+        }
+    }
+}
+
+/// Events validated and bucketed at a time by one chunk: small enough that the block's
+/// arrays are still in the L2 cache when the bucketing reads them after the validation.
+const BLOCK_EVENTS: usize = 1 << 14;
 
 /// Scratch memory of [`e3ct_into`], kept between windows so that a stream of windows does not
 /// fault in fresh pages for every one (page faults cost more than the accumulation itself).
+/// About 4 bytes per event of the largest window served, plus 512 KiB per segment.
 #[derive(Debug, Default)]
 pub struct E3ctWorkspace {
-    /// Every event of the window as a [`Packed`], grouped by band, then by chunk, each group
-    /// in input order (a stable counting sort).
-    packed: Vec<Packed>,
-    /// Per chunk: the votes `[V1 (1 − f), V1 f]` of each distinct time stamp, in order.
-    votes: Vec<Vec<[f32; 2]>>,
+    /// One per chunk of the first pass.
+    chunks: Vec<ChunkScratch>,
 }
 
 /// The E3CT of one window: a `height × width × C` image (channel fastest, `C` from
@@ -180,12 +259,12 @@ pub struct E3ctWorkspace {
 ///
 /// Two passes over the events, on any number of rayon threads. (1) The input is cut into
 /// chunks (one per thread); each chunk computes the votes once per distinct time stamp (event
-/// cameras stamp in µs, so a busy window has tens of events per stamp) and distributes its
-/// events by a stable counting sort into bands of rows, each band small enough to stay in the
+/// cameras stamp in µs, so a busy window has tens of events per stamp) and appends each event,
+/// as one 32-bit word, to the list of its band of rows, each band small enough to stay in the
 /// L2 cache. (2) Each band adds the votes of its events, those of chunk 0 first, then chunk 1,
 /// …, into its rows: the writes hit cache instead of the whole image in memory. Every pixel
 /// thus receives its events in input order whatever the thread count, which makes the `f32`
-/// sums bit-identical.
+/// sums bit-identical to adding every event straight into the image in input order.
 pub fn e3ct(
     events: &EventSlice<'_>,
     width: u32,
@@ -209,8 +288,8 @@ pub fn e3ct(
     Ok(out)
 }
 
-/// [`e3ct()`] writing into `out` (`height × width × C` values, overwritten) with reusable
-/// scratch memory; results are identical.
+/// [`e3ct()`] writing into `out` (`height × width × C` values, every one overwritten, so its
+/// previous content does not matter) with reusable scratch memory; results are identical.
 #[allow(clippy::too_many_arguments)]
 pub fn e3ct_into(
     events: &EventSlice<'_>,
@@ -223,7 +302,44 @@ pub fn e3ct_into(
     out: &mut [f32],
 ) -> Result<()> {
     params.check()?;
-    events.validate(width, height, t_start_ns, t_end_ns)?;
+    accumulate_mapped(
+        events,
+        (width, height),
+        width,
+        height,
+        t_start_ns,
+        t_end_ns,
+        params,
+        workspace,
+        out,
+        |x, y| Some((x, y)),
+    )
+}
+
+/// The E3CT of `events`, each moved first by `map` (the identity, or a rectification table;
+/// `None` drops the event) to a pixel of the `width × height` output.
+///
+/// The events are validated against the `raw_size` image and the window (see
+/// [`EventSlice::validate`]) block by block inside the first pass, while each block is in
+/// cache; an invalid event is reported, naming the first one, before the output is touched.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn accumulate_mapped<M>(
+    events: &EventSlice<'_>,
+    raw_size: (u32, u32),
+    width: u32,
+    height: u32,
+    t_start_ns: i64,
+    t_end_ns: i64,
+    params: &E3ctParams,
+    workspace: &mut E3ctWorkspace,
+    out: &mut [f32],
+    map: M,
+) -> Result<()>
+where
+    M: Fn(u16, u16) -> Option<(u16, u16)> + Sync,
+{
+    let (raw_w, raw_h) = raw_size;
+    check_frame(raw_w, raw_h, t_start_ns, t_end_ns)?;
     let (w, h) = (width as usize, height as usize);
     let c = params.output_channels();
     if out.len() != w * h * c {
@@ -235,147 +351,203 @@ pub fn e3ct_into(
     }
     let n = events.len();
     let row_values = w * c;
-    let rows_per_band = (BAND_BYTES / (4 * row_values).max(1)).clamp(1, h.max(1));
     if n == 0 || row_values == 0 {
         out.fill(0.0);
         return Ok(());
     }
-    let band_values = rows_per_band * row_values;
-    if u32::try_from(band_values).is_err() || u32::try_from(n).is_err() {
-        return Err(Error::invalid(
-            "events",
-            "fewer than 2³² events in one window and image rows of fewer than 2³² values",
-            n,
-        ));
-    }
     let kernel = Kernel::new(params, t_start_ns, t_end_ns);
     let off_offset = match params.polarity {
         PolarityMode::Both => 0,
-        PolarityMode::Split => params.channels as u64,
+        PolarityMode::Split => params.channels as u32,
     };
+    if row_values > BAND_VALUES {
+        // A row wider than a band (over 21,845 pixels at 3 channels): no packed place fits
+        // 16 bits; add every event straight into the image in input order (the same sums).
+        events.validate(raw_w, raw_h, t_start_ns, t_end_ns)?;
+        out.fill(0.0);
+        for k in 0..n {
+            if let Some((x, y)) = map(events.x[k], events.y[k]) {
+                let (i, w0, w1) = kernel.weights(events.t_ns[k]);
+                let group = if events.p[k] == 0 { off_offset } else { 0 } as usize;
+                let at = (usize::from(y) * w + usize::from(x)) * c + group + i;
+                out[at] += w0;
+                out[at + 1] += w1;
+            }
+        }
+        return Ok(());
+    }
+    let rows_per_band = (BAND_VALUES / row_values).clamp(1, h);
+    let band_values = rows_per_band * row_values;
     let bands = h.div_ceil(rows_per_band);
-    // Band of each row (high 32 bits) and the offset of the row's first value inside its
-    // band (low 32 bits).
-    let row_place: Vec<u64> = (0..h)
-        .map(|r| (((r / rows_per_band) as u64) << 32) | ((r % rows_per_band) * row_values) as u64)
+    // Band of each row (high 16 bits) and the offset of the row's first value inside its
+    // band (low 16 bits; below BAND_VALUES).
+    let row_place: Vec<u32> = (0..h)
+        .map(|r| (((r / rows_per_band) as u32) << 16) | ((r % rows_per_band) * row_values) as u32)
         .collect();
     let threads = rayon::current_num_threads();
     let chunk_len = n.div_ceil(threads).max(MIN_CHUNK_EVENTS);
     let n_chunks = n.div_ceil(chunk_len);
-    let chunk_range = |k: usize| k * chunk_len..((k + 1) * chunk_len).min(n);
-
-    // Pass 0: events per (chunk, band).
-    let counts: Vec<Vec<usize>> = (0..n_chunks)
-        .into_par_iter()
-        .map(|k| {
-            let mut count = vec![0usize; bands];
-            for &y in &events.y[chunk_range(k)] {
-                count[(row_place[usize::from(y)] >> 32) as usize] += 1;
-            }
-            count
-        })
-        .collect();
-    // Slots of the packed list: band-major, chunk-minor, so that each band's events are
-    // contiguous and in input order.
-    let E3ctWorkspace { packed, votes } = workspace;
-    if packed.capacity() < n {
-        // Fresh zeroed pages (no fill pass); pass 1 writes every slot.
-        *packed = vec![0; n];
-    } else {
-        packed.resize(n, 0);
-    }
-    votes.resize_with(n_chunks.max(votes.len()), Vec::new);
-    let mut lengths = Vec::with_capacity(bands * n_chunks);
-    for b in 0..bands {
-        lengths.extend(counts.iter().map(|count| count[b]));
-    }
-    let mut pieces = split_at_lengths(packed.as_mut_slice(), &lengths);
-    // Regroup the pieces chunk-major for pass 1 (each chunk writes its own pieces), keeping
-    // the band-major order of the slices for pass 2.
-    let mut per_chunk: Vec<Vec<&mut [Packed]>> = (0..n_chunks).map(|_| Vec::new()).collect();
-    for (index, piece) in pieces.drain(..).enumerate() {
-        per_chunk[index % n_chunks].push(piece);
-    }
-    // Pass 1: votes per distinct stamp, and the counting sort of the events into bands.
-    per_chunk
+    let chunks = &mut workspace.chunks;
+    chunks.resize_with(n_chunks.max(chunks.len()), ChunkScratch::default);
+    let c32 = c as u32;
+    // Pass 1, block by block: validation, votes per distinct stamp, and each event appended
+    // to its band's list (through the band's staging line).
+    let map = &map;
+    chunks[..n_chunks]
         .par_iter_mut()
-        .zip(votes[..n_chunks].par_iter_mut())
         .enumerate()
-        .for_each(|(k, (band_pieces, table))| {
-            let range = chunk_range(k);
-            table.clear();
-            // Write cursor of each band piece of this chunk.
-            let mut cursors: Vec<*mut Packed> =
-                band_pieces.iter_mut().map(|p| p.as_mut_ptr()).collect();
-            let mut last_t = i64::MIN;
-            let mut lower = 0u64;
-            let (xs, ys) = (&events.x[range.clone()], &events.y[range.clone()]);
-            let (ts, ps) = (&events.t_ns[range.clone()], &events.p[range]);
-            for (((&x, &y), &t), &p) in xs.iter().zip(ys).zip(ts).zip(ps) {
-                if t != last_t {
-                    let (i, w0, w1) = kernel.weights(t);
-                    table.push([w0, w1]);
-                    // The stamp's index goes to the high half of every packed event.
-                    lower = (((table.len() - 1) as u64) << 32) | i as u64;
-                    last_t = t;
+        .for_each(|(k, chunk)| {
+            chunk.used = 0;
+            chunk.bad = None;
+            chunk.stage.resize(bands, [0; STAGE]);
+            chunk.fill.clear();
+            chunk.fill.resize(bands, 0);
+            let range = k * chunk_len..((k + 1) * chunk_len).min(n);
+            let mut segment = chunk.next_segment(bands);
+            let mut stamps = Stamps::new();
+            let mut block = range.start;
+            while block < range.end {
+                let block_end = (block + BLOCK_EVENTS).min(range.end);
+                chunk.bad =
+                    events.first_invalid(block..block_end, raw_w, raw_h, t_start_ns, t_end_ns);
+                if chunk.bad.is_some() {
+                    return;
                 }
-                let place = row_place[usize::from(y)];
-                let band = (place >> 32) as usize;
-                let polarity = if p == 0 { off_offset } else { 0 };
-                let local = (place & 0xFFFF_FFFF) + u64::from(x) * c as u64 + polarity;
-                // SAFETY: pass 0 counted this chunk's events of every band and the band's
-                // piece has exactly that length; each event advances its band's cursor once,
-                // so every write lands inside the piece (y < height was validated, so `band`
-                // indexes `cursors`).
-                unsafe {
-                    let cursor = cursors.get_unchecked_mut(band);
-                    cursor.write(lower + local);
-                    *cursor = cursor.add(1);
+                let mut from = block;
+                loop {
+                    let ChunkScratch {
+                        segments,
+                        stage,
+                        fill,
+                        ..
+                    } = &mut *chunk;
+                    from = fill_segment(
+                        &mut segments[segment],
+                        stage,
+                        fill,
+                        &mut stamps,
+                        events,
+                        from..block_end,
+                        &kernel,
+                        &row_place,
+                        move |x, y, p| {
+                            let (x, y) = map(x, y)?;
+                            let polarity = if p == 0 { off_offset } else { 0 };
+                            Some((usize::from(y), u32::from(x) * c32 + polarity))
+                        },
+                    );
+                    if from == block_end {
+                        break;
+                    }
+                    // The segment's vote table is full: its staged events go to its lists.
+                    chunk.flush(segment);
+                    segment = chunk.next_segment(bands);
+                    stamps = Stamps::new();
                 }
+                block = block_end;
             }
+            chunk.flush(segment);
         });
-    // Pass 2: each band adds its events' votes into its rows, chunk after chunk.
-    let mut band_lists: Vec<&[Packed]> = Vec::with_capacity(bands * n_chunks);
-    let mut start = 0;
-    for &len in &lengths {
-        band_lists.push(&packed[start..start + len]);
-        start += len;
+    if let Some(i) = chunks[..n_chunks].iter().find_map(|chunk| chunk.bad) {
+        return Err(events.invalid_event(i, raw_w, raw_h, t_start_ns, t_end_ns));
     }
-    let votes = &votes[..n_chunks];
+    // Pass 2: each band adds its events' votes into its rows, chunk after chunk.
+    let chunks = &chunks[..n_chunks];
     out.par_chunks_mut(band_values)
-        .zip(band_lists.par_chunks(n_chunks))
-        .for_each(|(rows, lists)| {
+        .enumerate()
+        .for_each(|(band, rows)| {
             rows.fill(0.0);
-            for (list, table) in lists.iter().zip(votes) {
-                accumulate(rows, list, table);
+            for chunk in chunks {
+                for segment in &chunk.segments[..chunk.used] {
+                    add_votes(rows, &segment.lists[band], &segment.votes);
+                }
             }
         });
     Ok(())
 }
 
-/// Adds the votes of `list` (events of one band from one chunk) into the band's `rows`.
+/// Appends events `range` of `events` to the band lists of `segment` (through the staging
+/// lines `stage`, `fill`) until the range ends or the segment's vote table is full; returns
+/// the index of the first event not taken. `place(x, y, p)` gives the event's output row and
+/// its value offset inside the row (polarity group included), or `None` to drop it.
 #[inline]
-fn accumulate(rows: &mut [f32], list: &[Packed], table: &[[f32; 2]]) {
-    for &packed in list {
-        let id = (packed >> 32) as usize;
-        let at = (packed & 0xFFFF_FFFF) as usize;
-        assert!(id < table.len() && at + 1 < rows.len());
-        let [w0, w1] = table[id];
-        rows[at] += w0;
-        rows[at + 1] += w1;
+#[allow(clippy::too_many_arguments)]
+fn fill_segment(
+    segment: &mut Segment,
+    stage: &mut [[Packed; STAGE]],
+    fill: &mut [usize],
+    stamps: &mut Stamps,
+    events: &EventSlice<'_>,
+    range: std::ops::Range<usize>,
+    kernel: &Kernel,
+    row_place: &[u32],
+    place: impl Fn(u16, u16, i8) -> Option<(usize, u32)>,
+) -> usize {
+    let Segment { votes, lists } = segment;
+    let Stamps {
+        mut count,
+        mut last_t,
+        mut lower,
+    } = *stamps;
+    let start = range.start;
+    let part = events.sub(range);
+    let mut taken = part.len();
+    for (k, (((&x, &y), &t), &p)) in part
+        .x
+        .iter()
+        .zip(part.y)
+        .zip(part.t_ns)
+        .zip(part.p)
+        .enumerate()
+    {
+        if t != last_t {
+            if count == SEGMENT_STAMPS {
+                taken = k;
+                break;
+            }
+            let (i, w0, w1) = kernel.weights(t);
+            votes[count] = [w0, w1];
+            // Stamp index in the high half, lower channel in the low half (added to the
+            // place below; the sum stays under BAND_VALUES as every channel of the pixel
+            // lies inside the band).
+            lower = ((count as u32) << 16) | i as u32;
+            count += 1;
+            last_t = t;
+        }
+        let Some((row, offset)) = place(x, y, p) else {
+            continue;
+        };
+        let at = row_place[row];
+        let band = (at >> 16) as usize;
+        let line = &mut stage[band];
+        let used = fill[band];
+        line[used % STAGE] = lower + (at & 0xFFFF) + offset;
+        if used + 1 == STAGE {
+            lists[band].extend_from_slice(line);
+            fill[band] = 0;
+        } else {
+            fill[band] = used + 1;
+        }
     }
+    *stamps = Stamps {
+        count,
+        last_t,
+        lower,
+    };
+    start + taken
 }
 
-/// Splits `data` into consecutive mutable pieces of the given lengths (their sum must not
-/// exceed `data.len()`).
-fn split_at_lengths<'a, T>(mut data: &'a mut [T], lengths: &[usize]) -> Vec<&'a mut [T]> {
-    let mut pieces = Vec::with_capacity(lengths.len());
-    for &len in lengths {
-        let (head, tail) = std::mem::take(&mut data).split_at_mut(len);
-        pieces.push(head);
-        data = tail;
+/// Adds the votes of `list` (one segment's events of one band) into the band's `rows`.
+#[inline]
+fn add_votes(rows: &mut [f32], list: &[Packed], votes: &[[f32; 2]]) {
+    for &packed in list {
+        let [w0, w1] = votes[(packed >> 16) as usize];
+        let at = (packed & 0xFFFF) as usize;
+        if let Some([a, b]) = rows.get_mut(at..at + 2) {
+            *a += w0;
+            *b += w1;
+        }
     }
-    pieces
 }
 
 /// Bits of an `f32` below the first-pass histogram bin of [`channel_scales`]: the bin of a

@@ -71,55 +71,77 @@ impl<'a> EventSlice<'a> {
     /// and that times never decrease; the error names the first offending event.
     pub fn validate(&self, width: u32, height: u32, t_start_ns: i64, t_end_ns: i64) -> Result<()> {
         check_frame(width, height, t_start_ns, t_end_ns)?;
-        // Chunks are checked with a plain loop each (cheap enough to vectorise); the first
-        // chunk holding a bad event is found in parallel, the event inside it sequentially.
+        // The first chunk holding a bad event is found in parallel, the event inside it
+        // sequentially.
         let n = self.len();
         let bad = (0..n.div_ceil(CHECK_CHUNK))
             .into_par_iter()
             .find_map_first(|chunk| {
                 let start = chunk * CHECK_CHUNK;
-                let end = (start + CHECK_CHUNK).min(n);
-                // One reduction per array (each vectorises); a chunk with a bad event fails
-                // at least one of them.
-                let (xs, ys) = (&self.x[start..end], &self.y[start..end]);
-                let (ts, ps) = (&self.t_ns[start..end], &self.p[start..end]);
-                let max_x = xs.iter().fold(0u16, |m, &v| m.max(v));
-                let max_y = ys.iter().fold(0u16, |m, &v| m.max(v));
-                // p ∈ {0, 1} ⇔ no bit other than the lowest is set.
-                let p_bits = ps.iter().fold(0u8, |m, &v| m | (v as u8 & !1));
-                let descents = ts
-                    .iter()
-                    .zip(&ts[1..])
-                    .fold(0u32, |m, (a, b)| m | u32::from(b < a));
-                let previous = if start == 0 {
-                    i64::MIN
-                } else {
-                    self.t_ns[start - 1]
-                };
-                // Sorted (checked above and against the previous chunk), so the first and
-                // the last time bound all of them.
-                let ok = u32::from(max_x) < width
-                    && u32::from(max_y) < height
-                    && p_bits == 0
-                    && descents == 0
-                    && ts[0] >= previous
-                    && ts[0] >= t_start_ns
-                    && ts[ts.len() - 1] < t_end_ns;
-                if ok {
-                    return None;
-                }
-                (start..end).find(|&k| {
-                    let t = self.t_ns[k];
-                    u32::from(self.x[k]) >= width
-                        || u32::from(self.y[k]) >= height
-                        || !(0..=1).contains(&self.p[k])
-                        || !(t_start_ns..t_end_ns).contains(&t)
-                        || (k > 0 && t < self.t_ns[k - 1])
-                })
+                self.first_invalid(
+                    start..(start + CHECK_CHUNK).min(n),
+                    width,
+                    height,
+                    t_start_ns,
+                    t_end_ns,
+                )
             });
-        let Some(i) = bad else { return Ok(()) };
+        match bad {
+            None => Ok(()),
+            Some(i) => Err(self.invalid_event(i, width, height, t_start_ns, t_end_ns)),
+        }
+    }
+
+    /// The index of the first event of `range` that [`Self::validate`] refuses (its time is
+    /// also compared with the event before `range`), `None` when all are fine. The image size
+    /// and the window must have passed [`check_frame`].
+    pub(crate) fn first_invalid(
+        &self,
+        range: std::ops::Range<usize>,
+        width: u32,
+        height: u32,
+        t_start_ns: i64,
+        t_end_ns: i64,
+    ) -> Option<usize> {
+        let (start, end) = (range.start, range.end);
+        if start >= end {
+            return None;
+        }
+        let previous = if start == 0 {
+            i64::MIN
+        } else {
+            self.t_ns[start - 1]
+        };
+        let block = Block {
+            xs: &self.x[start..end],
+            ys: &self.y[start..end],
+            ts: &self.t_ns[start..end],
+            ps: &self.p[start..end],
+        };
+        if block.is_valid(previous, width, height, t_start_ns, t_end_ns) {
+            return None;
+        }
+        (start..end).find(|&k| {
+            let t = self.t_ns[k];
+            u32::from(self.x[k]) >= width
+                || u32::from(self.y[k]) >= height
+                || !(0..=1).contains(&self.p[k])
+                || !(t_start_ns..t_end_ns).contains(&t)
+                || (k > 0 && t < self.t_ns[k - 1])
+        })
+    }
+
+    /// The error naming event `i`, which [`Self::first_invalid`] found.
+    pub(crate) fn invalid_event(
+        &self,
+        i: usize,
+        width: u32,
+        height: u32,
+        t_start_ns: i64,
+        t_end_ns: i64,
+    ) -> Error {
         let (x, y, t, p) = (self.x[i], self.y[i], self.t_ns[i], self.p[i]);
-        Err(if u32::from(x) >= width || u32::from(y) >= height {
+        if u32::from(x) >= width || u32::from(y) >= height {
             Error::invalid(
                 format!("event {i} (x, y)"),
                 format!("a pixel inside the {width}×{height} image"),
@@ -134,16 +156,73 @@ impl<'a> EventSlice<'a> {
                 t,
             )
         } else {
+            let before = i.saturating_sub(1);
             Error::invalid(
                 format!("event {i} t_ns"),
                 format!(
-                    "times sorted in non-decreasing order (event {} is at {} ns)",
-                    i - 1,
-                    self.t_ns[i - 1]
+                    "times sorted in non-decreasing order (event {before} is at {} ns)",
+                    self.t_ns[before]
                 ),
                 t,
             )
-        })
+        }
+    }
+}
+
+/// A run of events checked at once.
+struct Block<'a> {
+    xs: &'a [u16],
+    ys: &'a [u16],
+    ts: &'a [i64],
+    ps: &'a [i8],
+}
+
+impl Block<'_> {
+    /// Whether every event is fine, by one reduction per array (each vectorises; a block with
+    /// a bad event fails at least one of them). On x86-64 the reductions run with AVX2 where
+    /// the CPU has it (unsigned 16-bit maxima and 64-bit comparisons have no SSE2 form).
+    fn is_valid(&self, previous: i64, width: u32, height: u32, t_s: i64, t_e: i64) -> bool {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU supports AVX2, checked just above.
+            return unsafe { self.is_valid_avx2(previous, width, height, t_s, t_e) };
+        }
+        self.is_valid_plain(previous, width, height, t_s, t_e)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn is_valid_avx2(
+        &self,
+        previous: i64,
+        width: u32,
+        height: u32,
+        t_s: i64,
+        t_e: i64,
+    ) -> bool {
+        self.is_valid_plain(previous, width, height, t_s, t_e)
+    }
+
+    #[inline(always)]
+    fn is_valid_plain(&self, previous: i64, width: u32, height: u32, t_s: i64, t_e: i64) -> bool {
+        let Self { xs, ys, ts, ps } = self;
+        let max_x = xs.iter().fold(0u16, |m, &v| m.max(v));
+        let max_y = ys.iter().fold(0u16, |m, &v| m.max(v));
+        // p ∈ {0, 1} ⇔ no bit other than the lowest is set.
+        let p_bits = ps.iter().fold(0u8, |m, &v| m | (v as u8 & !1));
+        let descents = ts
+            .iter()
+            .zip(&ts[1..])
+            .fold(0u32, |m, (a, b)| m | u32::from(b < a));
+        // Sorted (checked above and against the previous event), so the first and the last
+        // time bound all of them.
+        u32::from(max_x) < width
+            && u32::from(max_y) < height
+            && p_bits == 0
+            && descents == 0
+            && ts[0] >= previous
+            && ts[0] >= t_s
+            && ts[ts.len() - 1] < t_e
     }
 }
 

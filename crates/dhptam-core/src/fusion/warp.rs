@@ -159,11 +159,104 @@ impl EventFrameWarp {
                 for (u, out) in row.chunks_exact_mut(channels).enumerate() {
                     let p = start + step * u as f64;
                     if p.z > 0.0 {
-                        sample(src, src_w, src_h, channels, p.x / p.z, p.y / p.z, out);
+                        sample(
+                            src,
+                            src_w,
+                            src_h,
+                            channels,
+                            p.x / p.z,
+                            p.y / p.z,
+                            out,
+                            |s, _| s,
+                        );
                     }
                 }
             });
         Ok(dst)
+    }
+    /// The fused frame of one camera in one pass over the frame's pixels: the same `u8`
+    /// values as [`crate::fusion::fuse_e3ct`]`(frame, warp_image(scaled(src, scales)), C, β)`
+    /// (normalise, warp, blend), bit for bit, without the normalised and the warped images.
+    ///
+    /// `frame` is the rectified 8-bit frame (`frame_w × frame_h`), `src` the raw
+    /// (not normalised) rectified E3CT (`src_w × src_h × C`, `C = scales.len()`), `scales`
+    /// the per-channel scales of [`crate::events::channel_scales`], `beta` the weight of the
+    /// events in `[0, 1]`. Each bilinear tap is scaled and clipped before it is weighted,
+    /// exactly as the three separate passes do. Parallel over frame rows.
+    #[allow(clippy::too_many_arguments)]
+    pub fn fuse_frame(
+        &self,
+        frame: &[u8],
+        frame_w: usize,
+        frame_h: usize,
+        src: &[f32],
+        src_w: usize,
+        src_h: usize,
+        scales: &[f32],
+        beta: f64,
+    ) -> Result<Vec<u8>> {
+        let channels = scales.len();
+        if channels == 0 || src.len() != src_w * src_h * channels {
+            return Err(Error::invalid(
+                "src",
+                format!("{src_w}×{src_h}×{channels} values (one scale per channel)"),
+                format!("{} values", src.len()),
+            ));
+        }
+        if frame.len() != frame_w * frame_h {
+            return Err(Error::invalid(
+                "frame",
+                format!("{frame_w}×{frame_h} pixels"),
+                format!("{} pixels", frame.len()),
+            ));
+        }
+        if let Some(i) = scales.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(Error::invalid(
+                format!("scales[{i}]"),
+                "a positive finite scale",
+                scales[i],
+            ));
+        }
+        if !(0.0..=1.0).contains(&beta) {
+            return Err(Error::invalid("beta", "a weight in [0, 1]", beta));
+        }
+        let mut fused = vec![0u8; frame.len()];
+        if fused.is_empty() {
+            return Ok(fused);
+        }
+        // The same constants as `scaled` and `fuse_e3ct`, so the same roundings.
+        let inv: Vec<f32> = scales.iter().map(|s| 1.0 / s).collect();
+        let (a, b) = ((1.0 - beta) as f32, (beta * 255.0) as f32);
+        let h = self.event_from_frame_h;
+        let step = h.column(0).into_owned();
+        fused
+            .par_chunks_mut(frame_w)
+            .zip(frame.par_chunks(frame_w))
+            .enumerate()
+            .for_each(|(v, (out, row))| {
+                let start = h * Vector3::new(-self.align_px.x, v as f64 - self.align_px.y, 1.0);
+                let mut px = vec![0f32; channels];
+                for (u, (o, &c)) in out.iter_mut().zip(row).enumerate() {
+                    px.fill(0.0);
+                    let p = start + step * u as f64;
+                    if p.z > 0.0 {
+                        let scale = |s: f32, k: usize| (s * inv[k]).clamp(0.0, 1.0);
+                        sample(
+                            src,
+                            src_w,
+                            src_h,
+                            channels,
+                            p.x / p.z,
+                            p.y / p.z,
+                            &mut px,
+                            scale,
+                        );
+                    }
+                    let d = px.iter().copied().fold(0.0f32, f32::max).clamp(0.0, 1.0);
+                    *o = (a * f32::from(c) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8;
+                }
+            });
+        Ok(fused)
     }
 }
 
@@ -181,9 +274,20 @@ fn inverse_k(k: &Pinhole) -> Matrix3<f64> {
     )
 }
 
-/// Bilinear sample of every channel at (x, y), pixel centres at integers, 0 outside.
+/// Bilinear sample of every channel at (x, y), pixel centres at integers, 0 outside; each
+/// tap's value `s` of channel `k` enters as `value(s, k)` (the identity, or a normalisation).
 #[inline]
-fn sample(src: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [f32]) {
+#[allow(clippy::too_many_arguments)]
+fn sample(
+    src: &[f32],
+    w: usize,
+    h: usize,
+    c: usize,
+    x: f64,
+    y: f64,
+    out: &mut [f32],
+    value: impl Fn(f32, usize) -> f32,
+) {
     if !(x > -1.0 && y > -1.0 && x < w as f64 && y < h as f64) {
         return;
     }
@@ -205,8 +309,8 @@ fn sample(src: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [
                 continue;
             }
             let at = (dy * w + dx) * c;
-            for (o, s) in out.iter_mut().zip(&block[at..at + c]) {
-                *o += weight * s;
+            for (k, (o, &s)) in out.iter_mut().zip(&block[at..at + c]).enumerate() {
+                *o += weight * value(s, k);
             }
         }
         return;
@@ -217,8 +321,8 @@ fn sample(src: &[f32], w: usize, h: usize, c: usize, x: f64, y: f64, out: &mut [
             continue;
         }
         let base = (yi as usize * w + xi as usize) * c;
-        for (o, s) in out.iter_mut().zip(&src[base..base + c]) {
-            *o += weight * s;
+        for (k, (o, &s)) in out.iter_mut().zip(&src[base..base + c]).enumerate() {
+            *o += weight * value(s, k);
         }
     }
 }
