@@ -19,6 +19,8 @@ import platform
 import sys
 from pathlib import Path
 
+from _accuracy import evaluated_run, finish_table
+
 
 def main() -> int:
     parser = argparse.ArgumentParser(
@@ -34,9 +36,8 @@ def main() -> int:
 
     from dhptam import _core
     from dhptam.demo import GROUND_TRUTH, demo_sequence
-    from dhptam.eval import evaluate, load_trajectory, write_result
-    from dhptam.run import MODES, run
-    from dhptam.trajectory import atomic_write_text
+    from dhptam.eval import load_trajectory
+    from dhptam.run import MODES
 
     modes = [m for m in args.modes.split(",") if m]
     backends = [b for b in args.backend.split(",") if b]
@@ -64,13 +65,10 @@ def main() -> int:
                 for backend in backends:
                     tag = "" if bridge else "-nobridge"
                     out = args.out / f"seed{seed}" / f"{mode}{tag}-{backend}"
-                    result = run(
-                        sequence, out, mode=mode, features=args.features, config=config,
-                        progress=False, threaded=backend == "threaded",
+                    result, ev = evaluated_run(
+                        sequence, out, reference, mode=mode, features=args.features, config=config,
+                        threaded=backend == "threaded",
                     )  # fmt: skip
-                    estimate = load_trajectory(result.files["trajectory_frame_left"])
-                    ev = evaluate(estimate, reference, align="se3")
-                    write_result(ev, out, name="eval")
                     t = result.tracking
                     shown = ("on" if bridge else "off") if mode == "fusion" else "–"
                     lines.append(
@@ -79,11 +77,7 @@ def main() -> int:
                         f"| {t.get('segments', 0)} | {t.get('relocalisations', 0)} |"
                     )
                     print(lines[-1], file=sys.stderr)
-    table = "\n".join(lines) + "\n"
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "report.md", table)
-    sys.stdout.write(table)
-    return 0
+    return finish_table(lines, args.out)
 
 
 if __name__ == "__main__":

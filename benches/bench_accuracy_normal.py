@@ -22,6 +22,8 @@ import platform
 import sys
 from pathlib import Path
 
+from _accuracy import evaluated_run, finish_table
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -44,10 +46,9 @@ def main() -> int:
     args = parser.parse_args()
 
     from dhptam.demo import GROUND_TRUTH, cache_dir
-    from dhptam.eval import evaluate, load_trajectory, write_result
-    from dhptam.run import MODES, run
+    from dhptam.eval import load_trajectory
+    from dhptam.run import MODES
     from dhptam.sim import simulate
-    from dhptam.trajectory import atomic_write_text
 
     modes = [m for m in args.modes.split(",") if m]
     for m in modes:
@@ -85,19 +86,13 @@ def main() -> int:
         reference = load_trajectory(sequence / GROUND_TRUTH)
         for mode in modes:
             out = args.out / name / mode
-            result = run(sequence, out, mode=mode, progress=False, threaded=not args.sync)
-            ev = evaluate(load_trajectory(result.files["trajectory_frame_left"]), reference, align="se3")
-            write_result(ev, out, name="eval")
+            result, ev = evaluated_run(sequence, out, reference, mode=mode, threaded=not args.sync)
             lines.append(
                 f"| {path.stem} | {mode} | {result.frames} | {result.tracked} | {100 * ev.coverage:.0f} % "
                 f"| {ev.path_length_m:.3f} | {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} |"
             )
             print(lines[-1], file=sys.stderr)
-    table = "\n".join(lines) + "\n"
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "report.md", table)
-    sys.stdout.write(table)
-    return 0
+    return finish_table(lines, args.out)
 
 
 if __name__ == "__main__":
