@@ -31,10 +31,8 @@ and joins the thread. ``prefetch=0`` runs everything in the consumer's thread.
 
 from __future__ import annotations
 
-import queue
 import re
-import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -42,6 +40,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import _core
+from ._prefetch import prefetched
 from .datasets import EventWindow, Sequence
 from .errors import InputError
 from .events import e3ct, normalise
@@ -125,15 +124,6 @@ class BridgeImages:
     bias: str
     beta_left: float
     beta_right: float
-
-
-class _Done:
-    """End-of-stream marker of the prefetch queue."""
-
-
-class _Failed:
-    def __init__(self, error: BaseException) -> None:
-        self.error = error
 
 
 def _with_mode(config: _core.Config, mode: str) -> _core.Config:
@@ -252,9 +242,7 @@ class Frontend:
                     field="plane_depth",
                 )
             self.plane_depth_m = float(plane_depth)
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._queue: queue.Queue[Any] | None = None
+        self._prefetch: Generator[Any, None, None] | None = None
 
     @staticmethod
     def _rect_rotation(rect: RectifiedStereo, side: str) -> _core.SO3:
@@ -488,59 +476,25 @@ class Frontend:
 
     # -- iteration with prefetch ---------------------------------------------------------------
 
-    def _produce(self, q: queue.Queue[Any]) -> None:
-        def put(item: Any) -> bool:
-            while not self._stop.is_set():
-                try:
-                    q.put(item, timeout=0.05)
-                    return True
-                except queue.Full:
-                    continue
-            return False
-
-        try:
-            for k in range(self.start, self.stop):
-                if self._stop.is_set() or not put(self.process(k)):
-                    return
-            put(_Done())
-        except BaseException as error:  # handed to the consumer, which re-raises it
-            put(_Failed(error))
-
     def __iter__(self) -> Iterator[FrontendFrame]:
         if self.prefetch == 0:
             for k in range(self.start, self.stop):
                 yield self.process(k)
             return
         self.close()
-        self._stop.clear()
-        q: queue.Queue[Any] = queue.Queue(maxsize=self.prefetch)
-        self._queue = q
-        self._thread = threading.Thread(target=self._produce, args=(q,), name="dhptam-frontend", daemon=True)
-        self._thread.start()
+        self._prefetch = prefetched(
+            iter(range(self.start, self.stop)), self.process, "frontend", self.prefetch
+        )
         try:
-            while True:
-                item = q.get()
-                if isinstance(item, _Done):
-                    return
-                if isinstance(item, _Failed):
-                    raise item.error
-                yield item
+            yield from self._prefetch
         finally:
             self.close()
 
     def close(self) -> None:
         """Stops the prefetch thread (if any) and joins it."""
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            if self._queue is not None:
-                while True:
-                    try:
-                        self._queue.get_nowait()
-                    except queue.Empty:
-                        break
-            thread.join()
-        self._queue = None
+        stage, self._prefetch = self._prefetch, None
+        if stage is not None:
+            stage.close()
 
     def __enter__(self) -> Frontend:
         return self

@@ -26,7 +26,6 @@ from __future__ import annotations
 import io
 import json
 import logging
-import queue
 import signal
 import tempfile
 import threading
@@ -42,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from . import _core
+from ._prefetch import prefetched
 from .errors import InputError
 
 log = logging.getLogger(__name__)
@@ -82,63 +82,6 @@ class RunResult:
     def fps(self) -> float:
         """Frames per second over the whole run."""
         return self.frames / self.seconds if self.seconds > 0 else 0.0
-
-
-class _Stop:
-    """End of a stage's stream."""
-
-
-class _Failure:
-    def __init__(self, error: BaseException) -> None:
-        self.error = error
-
-
-def _stage(source: Iterator[Any], work: Callable[[Any], Any], name: str, depth: int) -> Iterator[Any]:
-    """Runs ``work`` over ``source`` on a thread of its own, up to ``depth`` items ahead of the
-    consumer. Errors are re-raised in the consumer; closing the generator (or an exception in
-    the consumer) stops the thread and closes ``source`` in turn."""
-    q: queue.Queue[Any] = queue.Queue(maxsize=depth)
-    stop = threading.Event()
-
-    def put(item: Any) -> bool:
-        while not stop.is_set():
-            try:
-                q.put(item, timeout=0.05)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def produce() -> None:
-        try:
-            for item in source:
-                if stop.is_set() or not put(work(item)):
-                    return
-            put(_Stop())
-        except BaseException as error:  # handed to the consumer
-            put(_Failure(error))
-
-    thread = threading.Thread(target=produce, name=f"dhptam-{name}", daemon=True)
-    thread.start()
-    try:
-        while True:
-            try:
-                item = q.get(timeout=0.1)
-            except queue.Empty:
-                if not thread.is_alive() and q.empty():
-                    return
-                continue
-            if isinstance(item, _Stop):
-                return
-            if isinstance(item, _Failure):
-                raise item.error
-            yield item
-    finally:
-        stop.set()
-        thread.join(timeout=30)
-        close = getattr(source, "close", None)
-        if close is not None and not thread.is_alive():
-            close()
 
 
 def _stats(values: Sequence[float]) -> dict[str, float]:
@@ -596,8 +539,8 @@ def _track_all(
         return frame, t_front, left, right, time.perf_counter() - t0, bridge
 
     indices = iter(range(frontend.start, frontend.stop))
-    fused = _stage(indices, front, "frontend", 2)
-    extracted = _stage(fused, extract, "extraction", 2)
+    fused = prefetched(indices, front, "frontend", 2)
+    extracted = prefetched(fused, extract, "extraction", 2)
     bar = _progress(frontend.stop - frontend.start, progress, f"dhptam {frontend.mode}")
     with _interrupts_between_frames() as interrupt_pending:
         try:
