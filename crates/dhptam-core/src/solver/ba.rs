@@ -1,33 +1,25 @@
 //! Bundle adjustment of BAL problems with the Schur complement.
 //!
 //! Unknowns: per camera c = [δφ, δt, δf, δk1, δk2] (rotation updated on the left,
-//! R ← exp(δφ) R), per point δX. With U = Σ J_cᵀJ_c, V = Σ J_pᵀJ_p, W = J_cᵀJ_p and gradients
-//! g_c, g_p, the damped normal equations
-//!
-//! ```text
-//! [U* W ] [δc]     [g_c]        S δc = −g_c + W V*⁻¹ g_p,   S = U* − W V*⁻¹ Wᵀ
-//! [Wᵀ V*] [δp] = − [g_p]   ⇒    δp = −V*⁻¹ (g_p + Wᵀ δc)
-//! ```
-//!
-//! eliminate the points (V* is block-diagonal with 3×3 blocks), leaving the reduced camera
-//! system S whose block pattern is the camera covisibility graph. S is factorised densely for
-//! small windows and by sparse Cholesky (symbolic analysis once per solve) for large ones.
-//! Residuals, Jacobians and the elimination run in parallel with rayon on a local pool.
+//! R ← exp(δφ) R), per point δX. The points are eliminated with the Schur complement of
+//! [`super::schur`], leaving the reduced camera system whose block pattern is the camera
+//! covisibility graph; it is factorised densely for small windows and by sparse Cholesky
+//! (symbolic analysis once per solve) for large ones. Residuals, Jacobians and the elimination
+//! run in parallel with rayon on a local pool.
 
 use nalgebra::{Matrix2x3, Matrix3, SMatrix, SVector, Vector2, Vector3};
 use rayon::prelude::*;
 
-use super::linear::{BlockCholesky, BlockPattern, LinearSolver};
+use super::linear::LinearSolver;
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
-use super::robust::{Corrector, Loss};
+use super::robust::Loss;
+use super::schur::{split_by_point, Schur};
 use crate::error::{Error, Result};
 use crate::geometry::so3::hat;
 use crate::geometry::So3;
 use crate::io::BalProblem;
 
 type M29 = SMatrix<f64, 2, 9>;
-type M93 = SMatrix<f64, 9, 3>;
-type M99 = SMatrix<f64, 9, 9>;
 type V9 = SVector<f64, 9>;
 
 /// Options of [`BundleAdjustment`].
@@ -148,31 +140,16 @@ pub struct BundleAdjustment {
     points: Vec<Vector3<f64>>,
     candidate_cameras: Vec<CameraState>,
     candidate_points: Vec<Vector3<f64>>,
-    /// Observations sorted by point: `point_obs[j]..point_obs[j + 1]`.
-    point_obs: Vec<usize>,
+    /// Camera and pixel of each observation, sorted by point (`schur.point_obs`).
     obs_camera: Vec<usize>,
     obs_pixel: Vec<Vector2<f64>>,
-    /// Original observation order, to map back.
+    /// Each camera's index among the free ones (`None`: held fixed).
     free_index: Vec<Option<usize>>,
-    /// For each free camera, its observations.
-    camera_obs: Vec<Vec<usize>>,
-    /// Per point, the reduced-system slots of its free observation pairs (a ≤ b in local
-    /// order), flattened; `pair_start[j]` indexes the first.
-    pair_slots: Vec<(usize, bool)>,
-    pair_start: Vec<usize>,
-    pattern: BlockPattern,
-    cholesky: BlockCholesky,
-    // Linearisation.
+    /// The normal equations' blocks, the reduced-system layout and the last step.
+    schur: Schur<9>,
+    // Linearisation, per sorted observation.
     jc: Vec<M29>,
     residual: Vec<Vector2<f64>>,
-    w: Vec<M93>,
-    u: Vec<M99>,
-    gc: Vec<V9>,
-    v: Vec<Matrix3<f64>>,
-    gp: Vec<Vector3<f64>>,
-    // Step.
-    step_c: Vec<V9>,
-    step_p: Vec<Vector3<f64>>,
 }
 
 impl BundleAdjustment {
@@ -248,46 +225,17 @@ impl BundleAdjustment {
             obs_camera[k] = o.camera;
             obs_pixel[k] = Vector2::new(o.pixel[0], o.pixel[1]);
         }
-        let mut camera_obs = vec![Vec::new(); n_free];
-        for (k, &c) in obs_camera.iter().enumerate() {
-            if let Some(f) = free_index[c] {
-                camera_obs[f].push(k);
-            }
-        }
-        let mut pairs = Vec::new();
-        for j in 0..n_pt {
-            let cams: Vec<usize> = (point_obs[j]..point_obs[j + 1])
-                .filter_map(|k| free_index[obs_camera[k]])
-                .collect();
-            for (a, &ca) in cams.iter().enumerate() {
-                for &cb in &cams[a + 1..] {
-                    if ca != cb {
-                        pairs.push((ca, cb));
-                    }
-                }
-            }
-        }
-        let pattern = BlockPattern::new(n_free, 9, pairs);
-        let mut pair_slots = Vec::new();
-        let mut pair_start = Vec::with_capacity(n_pt + 1);
-        for j in 0..n_pt {
-            pair_start.push(pair_slots.len());
-            let cams: Vec<usize> = (point_obs[j]..point_obs[j + 1])
-                .filter_map(|k| free_index[obs_camera[k]])
-                .collect();
-            for (a, &ca) in cams.iter().enumerate() {
-                for &cb in &cams[a..] {
-                    let (lo, hi) = (ca.min(cb), ca.max(cb));
-                    let slot = pattern.slot(lo, hi).ok_or_else(|| {
-                        Error::numerical("bundle adjustment", "covisibility pattern incomplete")
-                    })?;
-                    pair_slots.push((slot, ca > cb));
-                }
-            }
-        }
-        pair_start.push(pair_slots.len());
-        let cholesky =
-            pool.install(|| BlockCholesky::new(&pattern, options.linear_solver, threads))?;
+        let obs_free = obs_camera.iter().map(|&c| free_index[c]).collect();
+        let schur = pool.install(|| {
+            Schur::new(
+                point_obs,
+                obs_free,
+                n_free,
+                options.linear_solver,
+                threads,
+                "bundle adjustment",
+            )
+        })?;
         let cameras: Vec<CameraState> = problem.cameras.iter().map(CameraState::from_bal).collect();
         let points: Vec<Vector3<f64>> = problem.points.iter().map(|p| Vector3::from(*p)).collect();
         Ok(Self {
@@ -300,24 +248,12 @@ impl BundleAdjustment {
             candidate_points: points.clone(),
             cameras,
             points,
-            point_obs,
             obs_camera,
             obs_pixel,
             free_index,
-            camera_obs,
-            pair_slots,
-            pair_start,
-            pattern,
-            cholesky,
+            schur,
             jc: vec![M29::zeros(); n_obs],
             residual: vec![Vector2::zeros(); n_obs],
-            w: vec![M93::zeros(); n_obs],
-            u: vec![M99::zeros(); n_free],
-            gc: vec![V9::zeros(); n_free],
-            v: vec![Matrix3::zeros(); n_pt],
-            gp: vec![Vector3::zeros(); n_pt],
-            step_c: vec![V9::zeros(); n_free],
-            step_p: vec![Vector3::zeros(); n_pt],
         })
     }
 
@@ -328,7 +264,7 @@ impl BundleAdjustment {
 
     /// Whether the reduced camera system is factorised densely.
     pub fn uses_dense_solver(&self) -> bool {
-        self.cholesky.is_dense()
+        self.schur.is_dense()
     }
 
     /// Runs Levenberg–Marquardt from the current estimate.
@@ -353,7 +289,7 @@ impl BundleAdjustment {
             total_cost(
                 &self.cameras,
                 &self.points,
-                &self.point_obs,
+                &self.schur.point_obs,
                 &self.obs_camera,
                 &self.obs_pixel,
                 &self.loss,
@@ -405,17 +341,12 @@ fn total_cost(
         .sum::<f64>()
 }
 
-/// clamp(diag(m), lo, hi).
-fn clamped_diagonal<const N: usize>(m: &SMatrix<f64, N, N>, lo: f64, hi: f64) -> SVector<f64, N> {
-    SVector::<f64, N>::from_fn(|i, _| m[(i, i)].clamp(lo, hi))
-}
-
 impl LeastSquares for BundleAdjustment {
     fn cost(&mut self) -> f64 {
         total_cost(
             &self.cameras,
             &self.points,
-            &self.point_obs,
+            &self.schur.point_obs,
             &self.obs_camera,
             &self.obs_pixel,
             &self.loss,
@@ -424,235 +355,61 @@ impl LeastSquares for BundleAdjustment {
     }
 
     fn linearize(&mut self) -> f64 {
-        let (cameras, points) = (&self.cameras, &self.points);
-        let (point_obs, obs_camera, obs_pixel, loss) = (
-            &self.point_obs,
-            &self.obs_camera,
-            &self.obs_pixel,
-            &self.loss,
-        );
-        let free_index = &self.free_index;
+        let (cameras, points, loss) = (&self.cameras, &self.points, &self.loss);
+        let (obs_camera, obs_pixel) = (&self.obs_camera, &self.obs_pixel);
         let zero_behind_camera = self.zero_behind_camera;
+        let schur = &mut self.schur;
+        let point_obs = &schur.point_obs;
         // Residuals and Jacobians per point (each point owns a contiguous range).
-        type PointSlices<'a> = (&'a mut [M29], &'a mut [Vector2<f64>], &'a mut [M93]);
-        let mut per_point: Vec<PointSlices> = Vec::with_capacity(points.len());
-        {
-            let (mut jc, mut res, mut w) =
-                (&mut self.jc[..], &mut self.residual[..], &mut self.w[..]);
-            for j in 0..points.len() {
-                let m = point_obs[j + 1] - point_obs[j];
-                let (a, b) = jc.split_at_mut(m);
-                let (e, f) = res.split_at_mut(m);
-                let (g, h) = w.split_at_mut(m);
-                per_point.push((a, e, g));
-                jc = b;
-                res = f;
-                w = h;
-            }
-        }
-        per_point
+        split_by_point(&mut self.jc, point_obs)
             .into_par_iter()
-            .zip(self.v.par_iter_mut())
-            .zip(self.gp.par_iter_mut())
+            .zip(split_by_point(&mut self.residual, point_obs))
+            .zip(split_by_point(&mut schur.wt, point_obs))
+            .zip(schur.v.par_iter_mut())
+            .zip(schur.gp.par_iter_mut())
             .enumerate()
-            .for_each(|(j, (((jc, res, w), v), gp))| {
+            .with_min_len(64)
+            .for_each(|(j, ((((jc, res), wt), v), gp))| {
                 *v = Matrix3::zeros();
                 *gp = Vector3::zeros();
                 for (local, k) in (point_obs[j]..point_obs[j + 1]).enumerate() {
                     let cam = &cameras[obs_camera[k]];
                     if zero_behind_camera && !cam.sees(&points[j]) {
-                        w[local] = M93::zeros();
+                        wt[local] = SMatrix::zeros();
                         jc[local] = M29::zeros();
                         res[local] = Vector2::zeros();
                         continue;
                     }
                     let (pix, mut a, mut b) = cam.project_with_jacobians(&points[j]);
                     let mut r = pix - obs_pixel[k];
-                    if *loss != Loss::Trivial {
-                        let corr = Corrector::new(loss, r.norm_squared());
-                        if !corr.is_scalar() {
-                            let rr = r * r.transpose() * corr.alpha_over_s;
-                            a -= rr * a;
-                            b -= rr * b;
-                        }
-                        a *= corr.sqrt_rho1;
-                        b *= corr.sqrt_rho1;
-                        r *= corr.residual_scale;
+                    if let Some(corr) = loss.corrector(r.norm_squared()) {
+                        corr.correct_jacobian(&r, &mut a);
+                        corr.correct_jacobian(&r, &mut b);
+                        corr.correct_residual(&mut r);
                     }
-                    *v += b.transpose() * b;
-                    *gp += b.transpose() * r;
-                    if free_index[obs_camera[k]].is_some() {
-                        w[local] = a.transpose() * b;
-                    }
+                    let bt = b.transpose();
+                    *v += bt * b;
+                    *gp += bt * r;
+                    wt[local] = bt * a;
                     jc[local] = a;
                     res[local] = r;
                 }
             });
-        let (jc, residual) = (&self.jc, &self.residual);
-        self.u
-            .par_iter_mut()
-            .zip(self.gc.par_iter_mut())
-            .zip(self.camera_obs.par_iter())
-            .for_each(|((u, g), obs)| {
-                *u = M99::zeros();
-                *g = V9::zeros();
-                for &k in obs {
-                    *u += jc[k].transpose() * jc[k];
-                    *g += jc[k].transpose() * residual[k];
-                }
-            });
-        let gmax_c = self.gc.iter().map(|g| g.amax()).fold(0.0, f64::max);
-        let gmax_p = self.gp.iter().map(|g| g.amax()).fold(0.0, f64::max);
-        gmax_c.max(gmax_p)
+        schur.accumulate_cameras(&self.jc, &self.residual)
     }
 
     fn compute_step(&mut self, mu: f64, lo: f64, hi: f64) -> Option<Step> {
-        let n_free = self.u.len();
-        let dim = self.pattern.dim();
-        // Damped, inverted point blocks.
-        let v_inv: Vec<Option<Matrix3<f64>>> = self
-            .v
-            .par_iter()
-            .map(|v| {
-                let d = clamped_diagonal(v, lo, hi);
-                (v + Matrix3::from_diagonal(&(d * mu)))
-                    .cholesky()
-                    .map(|c| c.inverse())
-            })
-            .collect();
-        if v_inv.iter().any(Option::is_none) {
-            return None;
-        }
-        let n_values = self.pattern.stored_blocks() * 81;
-        let (point_obs, obs_camera, free_index) =
-            (&self.point_obs, &self.obs_camera, &self.free_index);
-        let (w, gp, pair_slots, pair_start) =
-            (&self.w, &self.gp, &self.pair_slots, &self.pair_start);
-        // S = −Σ W V*⁻¹ Wᵀ off the camera diagonal terms, rhs = Σ W V*⁻¹ g_p, accumulated
-        // per thread and summed.
-        let (mut values, mut rhs) = (0..self.points.len())
-            .into_par_iter()
-            .fold(
-                || (vec![0.0; n_values], vec![0.0; dim]),
-                |(mut values, mut rhs), j| {
-                    let Some(vi) = v_inv[j] else {
-                        return (values, rhs);
-                    };
-                    let free: Vec<(usize, usize)> = (point_obs[j]..point_obs[j + 1])
-                        .filter_map(|k| free_index[obs_camera[k]].map(|c| (k, c)))
-                        .collect();
-                    let mut slot = pair_start[j];
-                    for (a, &(ka, ca)) in free.iter().enumerate() {
-                        let wv = w[ka] * vi;
-                        let b = wv * gp[j];
-                        for (x, y) in rhs[ca * 9..ca * 9 + 9].iter_mut().zip(b.iter()) {
-                            *x += y;
-                        }
-                        for &(kb, _) in &free[a..] {
-                            let (s, transposed) = pair_slots[slot];
-                            slot += 1;
-                            let block = wv * w[kb].transpose();
-                            let dst = &mut values[s * 81..s * 81 + 81];
-                            if transposed {
-                                let bt = block.transpose();
-                                for (x, y) in dst.iter_mut().zip(bt.iter()) {
-                                    *x -= y;
-                                }
-                            } else {
-                                for (x, y) in dst.iter_mut().zip(block.iter()) {
-                                    *x -= y;
-                                }
-                            }
-                            // A point seen twice by one camera lands on a diagonal block
-                            // through two ordered pairs; the symmetric half is added here.
-                            if ka != kb && free_index[obs_camera[ka]] == free_index[obs_camera[kb]]
-                            {
-                                let bt = block.transpose();
-                                for (x, y) in dst.iter_mut().zip(bt.iter()) {
-                                    *x -= y;
-                                }
-                            }
-                        }
-                    }
-                    (values, rhs)
-                },
-            )
-            .reduce(
-                || (vec![0.0; n_values], vec![0.0; dim]),
-                |(mut va, mut ra), (vb, rb)| {
-                    va.iter_mut().zip(&vb).for_each(|(x, y)| *x += y);
-                    ra.iter_mut().zip(&rb).for_each(|(x, y)| *x += y);
-                    (va, ra)
-                },
-            );
-        let mut camera_diag = Vec::with_capacity(n_free);
-        for i in 0..n_free {
-            let d = clamped_diagonal(&self.u[i], lo, hi);
-            let ud = self.u[i] + M99::from_diagonal(&(d * mu));
-            let s = self.pattern.diagonal_slot(i);
-            for (x, y) in values[s * 81..s * 81 + 81].iter_mut().zip(ud.iter()) {
-                *x += y;
-            }
-            for (x, y) in rhs[i * 9..i * 9 + 9].iter_mut().zip(self.gc[i].iter()) {
-                *x -= y;
-            }
-            camera_diag.push(d);
-        }
-        if !self.cholesky.solve(&self.pattern, &values, &mut rhs) {
-            return None;
-        }
-        if rhs.iter().any(|x| !x.is_finite()) {
-            return None;
-        }
-        for (i, s) in self.step_c.iter_mut().enumerate() {
-            *s = V9::from_column_slice(&rhs[i * 9..i * 9 + 9]);
-        }
-        let step_c = &self.step_c;
-        let v = &self.v;
-        // Back-substitution δp = −V*⁻¹ (g_p + Σ Wᵀ δc), and the model decrease terms.
-        let point_terms: (f64, f64, f64) = self
-            .step_p
-            .par_iter_mut()
-            .enumerate()
-            .map(|(j, dp)| {
-                let mut b = gp[j];
-                for k in point_obs[j]..point_obs[j + 1] {
-                    if let Some(c) = free_index[obs_camera[k]] {
-                        b += w[k].transpose() * step_c[c];
-                    }
-                }
-                let vi = v_inv[j].unwrap_or_else(Matrix3::zeros);
-                *dp = -(vi * b);
-                let d = clamped_diagonal(&v[j], lo, hi);
-                (
-                    -gp[j].dot(dp),
-                    dp.component_mul(dp).dot(&d),
-                    dp.norm_squared(),
-                )
-            })
-            .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
-        let mut neg_g_dot = point_terms.0;
-        let mut d_dot = point_terms.1;
-        let mut norm2 = point_terms.2;
-        for ((dc, g), d) in self.step_c.iter().zip(&self.gc).zip(&camera_diag) {
-            neg_g_dot -= g.dot(dc);
-            d_dot += dc.component_mul(dc).dot(d);
-            norm2 += dc.norm_squared();
-        }
-        Some(Step {
-            model_decrease: 0.5 * (neg_g_dot + mu * d_dot),
-            norm: norm2.sqrt(),
-        })
+        self.schur.step(mu, lo, hi)
     }
 
     fn candidate_cost(&mut self) -> f64 {
         for (i, cam) in self.cameras.iter().enumerate() {
             self.candidate_cameras[i] = match self.free_index[i] {
-                Some(f) => cam.plus(&self.step_c[f]),
+                Some(f) => cam.plus(&self.schur.step_c[f]),
                 None => *cam,
             };
         }
-        let step_p = &self.step_p;
+        let step_p = &self.schur.step_p;
         self.candidate_points
             .par_iter_mut()
             .zip(self.points.par_iter())
@@ -661,7 +418,7 @@ impl LeastSquares for BundleAdjustment {
         total_cost(
             &self.candidate_cameras,
             &self.candidate_points,
-            &self.point_obs,
+            &self.schur.point_obs,
             &self.obs_camera,
             &self.obs_pixel,
             &self.loss,

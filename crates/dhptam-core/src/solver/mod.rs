@@ -8,6 +8,7 @@ pub mod pnp;
 pub mod pose;
 pub mod pose_graph;
 pub mod robust;
+mod schur;
 pub mod stereo_ba;
 
 pub use ba::{solve_bal, BundleAdjustment, BundleOptions};

@@ -15,7 +15,7 @@
 use nalgebra::{Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
-use super::robust::{Corrector, Loss};
+use super::robust::Loss;
 use crate::error::{Error, Result};
 use crate::geometry::Se3;
 
@@ -235,13 +235,9 @@ impl LeastSquares for PoseProblem<'_> {
             let Some((mut r, mut j, _)) = residual(&self.k, &rt, o, self.min_depth) else {
                 continue;
             };
-            if self.loss != Loss::Trivial {
-                let corr = Corrector::new(&self.loss, r.norm_squared());
-                if !corr.is_scalar() {
-                    j -= r * (r.transpose() * j) * corr.alpha_over_s;
-                }
-                j *= corr.sqrt_rho1;
-                r *= corr.residual_scale;
+            if let Some(corr) = self.loss.corrector(r.norm_squared()) {
+                corr.correct_jacobian(&r, &mut j);
+                corr.correct_residual(&mut r);
             }
             self.h.gemm_tr(1.0, &j, &j, 1.0);
             self.g.gemv_tr(1.0, &j, &r, 1.0);

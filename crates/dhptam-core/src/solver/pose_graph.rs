@@ -20,7 +20,7 @@ use rayon::prelude::*;
 
 use super::linear::{BlockCholesky, BlockPattern, LinearSolver};
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
-use super::robust::{Corrector, Loss};
+use super::robust::Loss;
 use crate::error::{Error, Result};
 use crate::geometry::Se3;
 use crate::io::g2o::{Pose2, PoseGraph2, PoseGraph3};
@@ -371,16 +371,10 @@ impl<P: GraphPose<D>, const D: usize> LeastSquares for PoseGraphSolver<P, D> {
                 let (r, ji, jj) =
                     P::between_error_jacobians(&poses[e.from], &poses[e.to], &e.measurement);
                 let (mut r, mut ji, mut jj) = (e.whitener * r, e.whitener * ji, e.whitener * jj);
-                if loss != Loss::Trivial {
-                    let corr = Corrector::new(&loss, r.norm_squared());
-                    if !corr.is_scalar() {
-                        let rr = r * r.transpose() * corr.alpha_over_s;
-                        ji -= rr * ji;
-                        jj -= rr * jj;
-                    }
-                    ji *= corr.sqrt_rho1;
-                    jj *= corr.sqrt_rho1;
-                    r *= corr.residual_scale;
+                if let Some(corr) = loss.corrector(r.norm_squared()) {
+                    corr.correct_jacobian(&r, &mut ji);
+                    corr.correct_jacobian(&r, &mut jj);
+                    corr.correct_residual(&mut r);
                 }
                 *lin = (r, ji, jj);
             });

@@ -8,6 +8,7 @@
 //! down-weighting region) the root is taken as α = 0: plain iteratively reweighted least
 //! squares, which keeps the model Hessian positive semi-definite.
 
+use nalgebra::{SMatrix, SVector};
 use serde::{Deserialize, Serialize};
 
 /// A robust loss with scale δ (the residual norm where it departs from the quadratic).
@@ -56,6 +57,12 @@ impl Loss {
     }
 
     /// The scale δ, `None` for the trivial loss.
+    /// The corrector for a residual block of squared norm `s`, or `None` for the trivial
+    /// loss (whose residuals and Jacobians are used as they are).
+    pub fn corrector(&self, s: f64) -> Option<Corrector> {
+        (*self != Loss::Trivial).then(|| Corrector::new(self, s))
+    }
+
     pub fn scale(&self) -> Option<f64> {
         match *self {
             Loss::Trivial => None,
@@ -99,5 +106,24 @@ impl Corrector {
     /// Whether the Jacobian needs more than a scalar factor.
     pub fn is_scalar(&self) -> bool {
         self.alpha_over_s == 0.0
+    }
+
+    /// Corrects the Jacobian of one parameter block, J ← √ρ' (J − (α/s) r (rᵀJ)), for the
+    /// block's residual `r` as it was before [`Corrector::correct_residual`].
+    pub fn correct_jacobian<const R: usize, const N: usize>(
+        &self,
+        r: &SVector<f64, R>,
+        j: &mut SMatrix<f64, R, N>,
+    ) {
+        if !self.is_scalar() {
+            let rtj = r.transpose() * *j;
+            *j -= r * rtj * self.alpha_over_s;
+        }
+        *j *= self.sqrt_rho1;
+    }
+
+    /// Corrects the residual, r ← r √ρ' / (1 − α). Call after the Jacobians are corrected.
+    pub fn correct_residual<const R: usize>(&self, r: &mut SVector<f64, R>) {
+        *r *= self.residual_scale;
     }
 }

@@ -13,10 +13,10 @@
 //!
 //! The residual is predicted − measured (3 rows for stereo, 2 for mono; the mono third row is
 //! zero), under a robust loss on its squared norm. The points are eliminated with the Schur
-//! complement exactly as in [`super::ba`]: V* is block-diagonal (3×3 per point) and the reduced
-//! keyframe system S = U* − W V*⁻¹ Wᵀ has 6×6 blocks on the covisibility pattern of the free
-//! keyframes; [`BlockCholesky`] factorises it densely for the window sizes the mapping thread
-//! uses (sparse above [`super::linear::DENSE_LIMIT`] unknowns). Fixed keyframes enter the
+//! complement of [`super::schur`] (shared with [`super::ba`]): the reduced keyframe system has
+//! 6×6 blocks on the covisibility pattern of the free keyframes and is factorised densely for
+//! the window sizes the mapping thread uses (sparse above [`super::linear::DENSE_LIMIT`]
+//! unknowns). Fixed keyframes enter the
 //! residuals but not the unknowns; at least one fixed keyframe (or the stereo baseline and a
 //! fixed keyframe) removes the gauge freedom, otherwise the LM damping alone holds the gauge.
 //!
@@ -24,20 +24,19 @@
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use nalgebra::{Matrix3, MatrixViewMut6, MatrixViewMut6x1, SMatrix, SVector, Vector2, Vector3};
+use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
 use rayon::prelude::*;
 
-use super::linear::{BlockCholesky, BlockPattern, LinearSolver};
+use super::linear::LinearSolver;
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
 use super::pose::StereoIntrinsics;
-use super::robust::{Corrector, Loss};
+use super::robust::Loss;
+use super::schur::{split_by_point, Schur};
 use crate::error::{ensure_finite, Error, Result};
 use crate::geometry::so3::hat;
 use crate::geometry::Se3;
 
 type M36 = SMatrix<f64, 3, 6>;
-type M66 = SMatrix<f64, 6, 6>;
-type V6 = SVector<f64, 6>;
 
 /// One keyframe of the window.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -218,38 +217,21 @@ struct StereoBa<'a> {
     candidate_poses: Vec<PoseState>,
     candidate_points: Vec<Vector3<f64>>,
     free_keyframes: Vec<usize>,
-    /// Observations sorted by point: `point_obs[j]..point_obs[j + 1]` index `obs`.
-    point_obs: Vec<usize>,
+    /// Observations sorted by point (`schur.point_obs`).
     obs: Vec<Obs>,
     /// The caller's index of each sorted observation.
     original: Vec<usize>,
-    /// Per free keyframe, its sorted observations.
-    camera_obs: Vec<Vec<usize>>,
-    /// Per point, the reduced-system slot (and whether the block goes in transposed) of each
-    /// ordered pair a ≤ b of its free observations; `pair_start[j]` indexes the first.
-    pair_slots: Vec<(usize, bool)>,
-    pair_start: Vec<usize>,
-    pattern: BlockPattern,
-    cholesky: BlockCholesky,
-    // Linearisation (per sorted observation, per free keyframe, per point).
+    /// The normal equations' blocks, the reduced-system layout and the last step.
+    schur: Schur<6>,
+    // Linearisation, per sorted observation.
     jp: Vec<M36>,
     residual: Vec<Vector3<f64>>,
-    /// Wᵀ = J_pointᵀ J_pose per observation (3×6), zero for fixed keyframes.
-    wt: Vec<M36>,
-    u: Vec<M66>,
-    gc: Vec<V6>,
-    v: Vec<Matrix3<f64>>,
-    gp: Vec<Vector3<f64>>,
-    // Step.
-    v_inv: Vec<Matrix3<f64>>,
-    step_c: Vec<V6>,
-    step_p: Vec<Vector3<f64>>,
 }
 
 impl StereoBa<'_> {
     fn cost_of(&self, poses: &[PoseState], points: &[Vector3<f64>]) -> f64 {
         let (k, loss, min_depth) = (&self.k, &self.loss, self.min_depth);
-        let (point_obs, obs) = (&self.point_obs, &self.obs);
+        let (point_obs, obs) = (&self.schur.point_obs, &self.obs);
         0.5 * (0..points.len())
             .into_par_iter()
             .with_min_len(64)
@@ -273,10 +255,6 @@ impl StereoBa<'_> {
     }
 }
 
-fn clamped_diagonal<const N: usize>(m: &SMatrix<f64, N, N>, lo: f64, hi: f64) -> SVector<f64, N> {
-    SVector::<f64, N>::from_fn(|i, _| m[(i, i)].clamp(lo, hi))
-}
-
 impl LeastSquares for StereoBa<'_> {
     fn cost(&mut self) -> f64 {
         self.cost_of(&self.poses, &self.points)
@@ -284,32 +262,19 @@ impl LeastSquares for StereoBa<'_> {
 
     fn linearize(&mut self) -> f64 {
         let (k, loss, min_depth) = (&self.k, &self.loss, self.min_depth);
-        let (poses, points, point_obs, obs) =
-            (&self.poses, &self.points, &self.point_obs, &self.obs);
+        let (poses, points, obs) = (&self.poses, &self.points, &self.obs);
+        let schur = &mut self.schur;
+        let point_obs = &schur.point_obs;
         // Each point owns a contiguous range of the per-observation arrays.
-        type PointSlices<'a> = (&'a mut [M36], &'a mut [Vector3<f64>], &'a mut [M36]);
-        let mut per_point: Vec<PointSlices> = Vec::with_capacity(points.len());
-        {
-            let (mut jp, mut res, mut w) =
-                (&mut self.jp[..], &mut self.residual[..], &mut self.wt[..]);
-            for j in 0..points.len() {
-                let m = point_obs[j + 1] - point_obs[j];
-                let (a, b) = jp.split_at_mut(m);
-                let (c, d) = res.split_at_mut(m);
-                let (e, f) = w.split_at_mut(m);
-                per_point.push((a, c, e));
-                jp = b;
-                res = d;
-                w = f;
-            }
-        }
-        per_point
+        split_by_point(&mut self.jp, point_obs)
             .into_par_iter()
-            .zip(self.v.par_iter_mut())
-            .zip(self.gp.par_iter_mut())
+            .zip(split_by_point(&mut self.residual, point_obs))
+            .zip(split_by_point(&mut schur.wt, point_obs))
+            .zip(schur.v.par_iter_mut())
+            .zip(schur.gp.par_iter_mut())
             .enumerate()
             .with_min_len(64)
-            .for_each(|(j, (((jp, res, w), v), gp))| {
+            .for_each(|(j, ((((jp, res), wt), v), gp))| {
                 *v = Matrix3::zeros();
                 *gp = Vector3::zeros();
                 let x = &points[j];
@@ -324,196 +289,40 @@ impl LeastSquares for StereoBa<'_> {
                     ) else {
                         jp[local] = M36::zeros();
                         res[local] = Vector3::zeros();
-                        w[local] = M36::zeros();
+                        wt[local] = M36::zeros();
                         continue;
                     };
-                    if *loss != Loss::Trivial {
-                        let corr = Corrector::new(loss, r.norm_squared());
-                        if !corr.is_scalar() {
-                            let rr = r * r.transpose() * corr.alpha_over_s;
-                            a -= rr * a;
-                            b -= rr * b;
-                        }
-                        a *= corr.sqrt_rho1;
-                        b *= corr.sqrt_rho1;
-                        r *= corr.residual_scale;
+                    if let Some(corr) = loss.corrector(r.norm_squared()) {
+                        corr.correct_jacobian(&r, &mut a);
+                        corr.correct_jacobian(&r, &mut b);
+                        corr.correct_residual(&mut r);
                     }
                     let bt = b.transpose();
                     *v += bt * b;
                     *gp += bt * r;
-                    w[local] = if o.free.is_some() {
-                        bt * a
-                    } else {
-                        M36::zeros()
-                    };
+                    wt[local] = bt * a;
                     jp[local] = a;
                     res[local] = r;
                 }
             });
-        let (jp, residual) = (&self.jp, &self.residual);
-        self.u
-            .par_iter_mut()
-            .zip(self.gc.par_iter_mut())
-            .zip(self.camera_obs.par_iter())
-            .for_each(|((u, g), list)| {
-                *u = M66::zeros();
-                *g = V6::zeros();
-                for &s in list {
-                    let at = jp[s].transpose();
-                    *u += at * jp[s];
-                    *g += at * residual[s];
-                }
-            });
-        let gmax_c = self.gc.iter().map(|g| g.amax()).fold(0.0, f64::max);
-        let gmax_p = self.gp.iter().map(|g| g.amax()).fold(0.0, f64::max);
-        gmax_c.max(gmax_p)
+        schur.accumulate_cameras(&self.jp, &self.residual)
     }
 
     fn compute_step(&mut self, mu: f64, lo: f64, hi: f64) -> Option<Step> {
-        let n_free = self.u.len();
-        let dim = self.pattern.dim();
-        let ok = self
-            .v_inv
-            .par_iter_mut()
-            .zip(self.v.par_iter())
-            .with_min_len(256)
-            .all(|(vi, v)| {
-                let d = clamped_diagonal(v, lo, hi);
-                match (v + Matrix3::from_diagonal(&(d * mu))).try_inverse() {
-                    Some(inv) if inv.iter().all(|x| x.is_finite()) => {
-                        *vi = inv;
-                        true
-                    }
-                    _ => false,
-                }
-            });
-        if !ok {
-            return None;
-        }
-        let n_values = self.pattern.stored_blocks() * 36;
-        let (point_obs, obs, wt, gp, v_inv) =
-            (&self.point_obs, &self.obs, &self.wt, &self.gp, &self.v_inv);
-        let (pair_slots, pair_start) = (&self.pair_slots, &self.pair_start);
-        // −Σ W V*⁻¹ Wᵀ into the blocks and Σ W V*⁻¹ g_p into the right-hand side, accumulated
-        // per worker and summed.
-        let (mut values, mut rhs) = (0..self.points.len())
-            .into_par_iter()
-            .with_min_len(128)
-            .fold(
-                || (vec![0.0; n_values], vec![0.0; dim]),
-                |(mut values, mut rhs), j| {
-                    let vi = &v_inv[j];
-                    let range = point_obs[j]..point_obs[j + 1];
-                    let mut slot = pair_start[j];
-                    for a in range.clone() {
-                        let Some(ca) = obs[a].free else { continue };
-                        // (W_a V*⁻¹)ᵀ = V*⁻¹ W_aᵀ, 3×6.
-                        let vwt = vi * wt[a];
-                        let mut r = MatrixViewMut6x1::from_slice(&mut rhs[ca * 6..ca * 6 + 6]);
-                        r.gemv_tr(1.0, &vwt, &gp[j], 1.0);
-                        for bi in a..range.end {
-                            let Some(cb) = obs[bi].free else { continue };
-                            let (s, transposed) = pair_slots[slot];
-                            slot += 1;
-                            // Block (ca, cb) −= W_a V*⁻¹ W_bᵀ, written in place (or its
-                            // transpose into (cb, ca)).
-                            let mut dst =
-                                MatrixViewMut6::from_slice(&mut values[s * 36..s * 36 + 36]);
-                            if transposed {
-                                dst.gemm_tr(-1.0, &wt[bi], &vwt, 1.0);
-                            } else {
-                                dst.gemm_tr(-1.0, &vwt, &wt[bi], 1.0);
-                            }
-                            // Two observations of one point by one keyframe meet on a diagonal
-                            // block through both orders; add the other half here.
-                            if bi != a && ca == cb {
-                                if transposed {
-                                    dst.gemm_tr(-1.0, &vwt, &wt[bi], 1.0);
-                                } else {
-                                    dst.gemm_tr(-1.0, &wt[bi], &vwt, 1.0);
-                                }
-                            }
-                        }
-                    }
-                    (values, rhs)
-                },
-            )
-            .reduce(
-                || (vec![0.0; n_values], vec![0.0; dim]),
-                |(mut va, mut ra), (vb, rb)| {
-                    va.iter_mut().zip(&vb).for_each(|(x, y)| *x += y);
-                    ra.iter_mut().zip(&rb).for_each(|(x, y)| *x += y);
-                    (va, ra)
-                },
-            );
-        let mut camera_diag = Vec::with_capacity(n_free);
-        for i in 0..n_free {
-            let d = clamped_diagonal(&self.u[i], lo, hi);
-            let ud = self.u[i] + M66::from_diagonal(&(d * mu));
-            let s = self.pattern.diagonal_slot(i);
-            values[s * 36..s * 36 + 36]
-                .iter_mut()
-                .zip(ud.iter())
-                .for_each(|(x, y)| *x += y);
-            rhs[i * 6..i * 6 + 6]
-                .iter_mut()
-                .zip(self.gc[i].iter())
-                .for_each(|(x, y)| *x -= y);
-            camera_diag.push(d);
-        }
-        if n_free > 0 && !self.cholesky.solve(&self.pattern, &values, &mut rhs) {
-            return None;
-        }
-        if rhs.iter().any(|x| !x.is_finite()) {
-            return None;
-        }
-        for (i, s) in self.step_c.iter_mut().enumerate() {
-            *s = V6::from_column_slice(&rhs[i * 6..i * 6 + 6]);
-        }
-        let (step_c, v) = (&self.step_c, &self.v);
-        // Back-substitution δX = −V*⁻¹ (g_p + Σ Wᵀ δξ) and the model-decrease terms.
-        let (mut neg_g_dot, mut d_dot, mut norm2) = self
-            .step_p
-            .par_iter_mut()
-            .enumerate()
-            .with_min_len(256)
-            .map(|(j, dp)| {
-                let mut b = gp[j];
-                for s in point_obs[j]..point_obs[j + 1] {
-                    if let Some(c) = obs[s].free {
-                        b.gemv(1.0, &wt[s], &step_c[c], 1.0);
-                    }
-                }
-                *dp = -(v_inv[j] * b);
-                let d = clamped_diagonal(&v[j], lo, hi);
-                (
-                    -gp[j].dot(dp),
-                    dp.component_mul(dp).dot(&d),
-                    dp.norm_squared(),
-                )
-            })
-            .reduce(|| (0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2));
-        for ((dc, g), d) in self.step_c.iter().zip(&self.gc).zip(&camera_diag) {
-            neg_g_dot -= g.dot(dc);
-            d_dot += dc.component_mul(dc).dot(d);
-            norm2 += dc.norm_squared();
-        }
-        Some(Step {
-            model_decrease: 0.5 * (neg_g_dot + mu * d_dot),
-            norm: norm2.sqrt(),
-        })
+        self.schur.step(mu, lo, hi)
     }
 
     fn candidate_cost(&mut self) -> f64 {
         self.candidate_poses.copy_from_slice(&self.poses);
         for (f, &i) in self.free_keyframes.iter().enumerate() {
-            self.candidate_poses[i] = PoseState::new(Se3::exp(&self.step_c[f]) * self.poses[i].se3);
+            self.candidate_poses[i] =
+                PoseState::new(Se3::exp(&self.schur.step_c[f]) * self.poses[i].se3);
         }
         for ((c, p), d) in self
             .candidate_points
             .iter_mut()
             .zip(&self.points)
-            .zip(&self.step_p)
+            .zip(&self.schur.step_p)
         {
             *c = p + d;
         }
@@ -665,47 +474,6 @@ pub fn solve_stereo_ba(
         };
         original[at] = s;
     }
-    let mut camera_obs = vec![Vec::new(); n_free];
-    for (s, o) in obs.iter().enumerate() {
-        if let Some(f) = o.free {
-            camera_obs[f].push(s);
-        }
-    }
-    let mut pairs = Vec::new();
-    for j in 0..n_pt {
-        let range = &obs[point_obs[j]..point_obs[j + 1]];
-        for (a, oa) in range.iter().enumerate() {
-            let Some(ca) = oa.free else { continue };
-            for ob in &range[a + 1..] {
-                if let Some(cb) = ob.free {
-                    if ca != cb {
-                        pairs.push((ca, cb));
-                    }
-                }
-            }
-        }
-    }
-    let pattern = BlockPattern::new(n_free, 6, pairs);
-    let mut pair_slots = Vec::new();
-    let mut pair_start = Vec::with_capacity(n_pt + 1);
-    for j in 0..n_pt {
-        pair_start.push(pair_slots.len());
-        let range = &obs[point_obs[j]..point_obs[j + 1]];
-        for (a, oa) in range.iter().enumerate() {
-            let Some(ca) = oa.free else { continue };
-            for ob in &range[a..] {
-                let Some(cb) = ob.free else { continue };
-                let slot = pattern.slot(ca.min(cb), ca.max(cb)).ok_or_else(|| {
-                    Error::numerical(
-                        "stereo bundle adjustment",
-                        "covisibility pattern incomplete",
-                    )
-                })?;
-                pair_slots.push((slot, ca > cb));
-            }
-        }
-    }
-    pair_start.push(pair_slots.len());
     let threads = if options.threads == 0 {
         std::thread::available_parallelism().map_or(1, |n| n.get())
     } else {
@@ -715,7 +483,15 @@ pub fn solve_stereo_ba(
         .num_threads(threads)
         .build()
         .map_err(|e| Error::numerical("thread pool", e.to_string()))?;
-    let cholesky = BlockCholesky::new(&pattern, LinearSolver::Auto, threads)?;
+    let obs_free = obs.iter().map(|o| o.free).collect();
+    let schur = Schur::new(
+        point_obs,
+        obs_free,
+        n_free,
+        LinearSolver::Auto,
+        threads,
+        "stereo bundle adjustment",
+    )?;
     let poses: Vec<PoseState> = keyframes
         .iter()
         .map(|kf| PoseState::new(kf.cam_from_world))
@@ -730,24 +506,11 @@ pub fn solve_stereo_ba(
         poses,
         points: points.to_vec(),
         free_keyframes,
-        point_obs,
         obs,
         original,
-        camera_obs,
-        pair_slots,
-        pair_start,
-        pattern,
-        cholesky,
+        schur,
         jp: vec![M36::zeros(); n_obs],
         residual: vec![Vector3::zeros(); n_obs],
-        wt: vec![M36::zeros(); n_obs],
-        u: vec![M66::zeros(); n_free],
-        gc: vec![V6::zeros(); n_free],
-        v: vec![Matrix3::zeros(); n_pt],
-        gp: vec![Vector3::zeros(); n_pt],
-        v_inv: vec![Matrix3::zeros(); n_pt],
-        step_c: vec![V6::zeros(); n_free],
-        step_p: vec![Vector3::zeros(); n_pt],
     };
     let report = pool.install(|| lm::solve(&mut problem, &options.lm))?;
     for (kf, pose) in keyframes.iter_mut().zip(&problem.poses) {
@@ -756,7 +519,7 @@ pub fn solve_stereo_ba(
     points.copy_from_slice(&problem.points);
     let mut inliers = vec![false; n_obs];
     for j in 0..n_pt {
-        for s in problem.point_obs[j]..problem.point_obs[j + 1] {
+        for s in problem.schur.point_obs[j]..problem.schur.point_obs[j + 1] {
             let o = &problem.obs[s];
             let r = residual_only(
                 k,
