@@ -13,7 +13,7 @@ use rayon::prelude::*;
 use super::linear::LinearSolver;
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
 use super::robust::Loss;
-use super::schur::{split_by_point, Schur};
+use super::schur::{add_observation, split_by_point, Schur};
 use crate::error::{Error, Result};
 use crate::geometry::so3::hat;
 use crate::geometry::So3;
@@ -380,17 +380,10 @@ impl LeastSquares for BundleAdjustment {
                         res[local] = Vector2::zeros();
                         continue;
                     }
-                    let (pix, mut a, mut b) = cam.project_with_jacobians(&points[j]);
-                    let mut r = pix - obs_pixel[k];
-                    if let Some(corr) = loss.corrector(r.norm_squared()) {
-                        corr.correct_jacobian(&r, &mut a);
-                        corr.correct_jacobian(&r, &mut b);
-                        corr.correct_residual(&mut r);
-                    }
-                    let bt = b.transpose();
-                    *v += bt * b;
-                    *gp += bt * r;
-                    wt[local] = bt * a;
+                    let (pix, a, b) = cam.project_with_jacobians(&points[j]);
+                    let r = pix - obs_pixel[k];
+                    let (r, a, w) = add_observation(loss, r, a, b, v, gp);
+                    wt[local] = w;
                     jc[local] = a;
                     res[local] = r;
                 }

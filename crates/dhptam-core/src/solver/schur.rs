@@ -21,6 +21,7 @@ use rayon::prelude::*;
 
 use super::linear::{BlockCholesky, BlockPattern, LinearSolver};
 use super::lm::Step;
+use super::robust::Loss;
 use crate::error::{Error, Result};
 
 /// The normal-equation blocks and the reduced-system layout of a problem with cameras of `C`
@@ -65,6 +66,29 @@ pub(crate) fn split_by_point<'a, T>(mut data: &'a mut [T], offsets: &[usize]) ->
             head
         })
         .collect()
+}
+
+/// One observation's share of its point's blocks: robust-corrects the residual `r` and the
+/// Jacobians `jc` (camera) and `jp` (point), adds J_pᵀJ_p to `v` and J_pᵀr to `gp`, and
+/// returns the corrected residual, the corrected J_c and Wᵀ = J_pᵀJ_c for the solver to store.
+#[inline]
+pub(crate) fn add_observation<const R: usize, const C: usize>(
+    loss: &Loss,
+    mut r: SVector<f64, R>,
+    mut jc: SMatrix<f64, R, C>,
+    mut jp: SMatrix<f64, R, 3>,
+    v: &mut Matrix3<f64>,
+    gp: &mut Vector3<f64>,
+) -> (SVector<f64, R>, SMatrix<f64, R, C>, SMatrix<f64, 3, C>) {
+    if let Some(corr) = loss.corrector(r.norm_squared()) {
+        corr.correct_jacobian(&r, &mut jc);
+        corr.correct_jacobian(&r, &mut jp);
+        corr.correct_residual(&mut r);
+    }
+    let jpt = jp.transpose();
+    *v += jpt * jp;
+    *gp += jpt * r;
+    (r, jc, jpt * jc)
 }
 
 /// clamp(diag(m), lo, hi).

@@ -31,7 +31,7 @@ use super::linear::LinearSolver;
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
 use super::pose::StereoIntrinsics;
 use super::robust::Loss;
-use super::schur::{split_by_point, Schur};
+use super::schur::{add_observation, split_by_point, Schur};
 use crate::error::{ensure_finite, Error, Result};
 use crate::geometry::so3::hat;
 use crate::geometry::Se3;
@@ -279,7 +279,7 @@ impl LeastSquares for StereoBa<'_> {
                 *gp = Vector3::zeros();
                 let x = &points[j];
                 for (local, o) in obs[point_obs[j]..point_obs[j + 1]].iter().enumerate() {
-                    let Some((mut r, mut a, mut b)) = residual_jacobians(
+                    let Some((r, a, b)) = residual_jacobians(
                         k,
                         &poses[o.keyframe],
                         x,
@@ -292,15 +292,8 @@ impl LeastSquares for StereoBa<'_> {
                         wt[local] = M36::zeros();
                         continue;
                     };
-                    if let Some(corr) = loss.corrector(r.norm_squared()) {
-                        corr.correct_jacobian(&r, &mut a);
-                        corr.correct_jacobian(&r, &mut b);
-                        corr.correct_residual(&mut r);
-                    }
-                    let bt = b.transpose();
-                    *v += bt * b;
-                    *gp += bt * r;
-                    wt[local] = bt * a;
+                    let (r, a, w) = add_observation(loss, r, a, b, v, gp);
+                    wt[local] = w;
                     jp[local] = a;
                     res[local] = r;
                 }
