@@ -431,6 +431,9 @@ class Frontend:
         previous ``[fusion] flood_history`` windows (:func:`is_flood`; frame 0 never is)."""
         count = stats.events_left + stats.events_right
         self._window_counts[index] = count
+        # Bounded memory on long runs: keep the counts a later window can still ask for.
+        for old in [k for k in self._window_counts if k < index - 2 * self.flood_history]:
+            del self._window_counts[old]
         if self.flood_ratio <= 0.0:
             return False
         history = [self._window_count(k) for k in range(max(0, index - self.flood_history), index)]

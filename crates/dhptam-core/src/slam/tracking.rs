@@ -679,11 +679,12 @@ pub fn mean_velocity(map: &Map, state: &TrackerState, frames: u32) -> Option<Se3
 /// Moves the pose on to `t_ns` with the constant-velocity model without looking at the
 /// frame: for frames whose images carry no usable measurement (an event window flooded by a
 /// global lighting change, issue 8). The velocity is the mean over `velocity_frames` steps
-/// ([`mean_velocity`]; the last step's when the trajectory is shorter). The predicted `world_from_cam` is recorded in the
-/// trajectory relative to the reference keyframe and becomes the last frame, so the next
-/// frame's prediction extrapolates from it; the velocity, the reference keyframe and the map
-/// are unchanged (no matching, no keyframe, no new map segment). Returns `None` when there is
-/// nothing to predict from (not initialised yet, or the last frame was lost).
+/// ([`mean_velocity`]; the last step's when the trajectory is shorter). The predicted
+/// `world_from_cam` is recorded in the trajectory relative to the reference keyframe and
+/// becomes the last frame, so the next frame's prediction extrapolates from it; the velocity,
+/// the reference keyframe and the map are unchanged (no matching, no keyframe, no new map
+/// segment). Returns `None` when there is nothing to predict from (not initialised yet, the
+/// last frame lost, or no reference keyframe).
 pub fn predict_only(
     map: &mut Map,
     state: &mut TrackerState,
