@@ -4,11 +4,14 @@ For every ``--seeds`` the ``demo`` preset is simulated once into the dhptam cach
 demo`` reuses the same files), then dhptam runs in every mode, threaded and/or synchronous,
 and is evaluated against the simulator's ground truth (evo, SE(3) alignment, left frame
 camera). ``--bridge both`` also runs ``fusion`` with ``[fusion] bridge = false``, to measure
-the bridge keyframes against new map segments. Prints a Markdown table (with the bridges,
+the bridge keyframes against new map segments; ``--flood both`` also runs ``fusion`` and
+``events`` with ``[fusion] flood_predict = false`` (flood frames tracked like any other),
+to measure the prediction across illumination floods. Prints a Markdown table (with the bridges,
 new map segments and relocalisations of each run) and writes the runs under ``--out``.
 
     python benches/bench_accuracy_demo.py [--seeds 0,2] [--modes fusion,frames,events]
-        [--backend threaded,sync] [--bridge on|off|both] [--out bench-accuracy-demo]
+        [--backend threaded,sync] [--bridge on|off|both] [--flood on|off|both]
+        [--out bench-accuracy-demo]
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ def main() -> int:
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--backend", default="threaded,sync", help="threaded and/or sync")
     parser.add_argument("--bridge", choices=("on", "off", "both"), default="on")
+    parser.add_argument("--flood", choices=("on", "off", "both"), default="on", help="flood_predict")
     parser.add_argument("--features", default="orb")
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy-demo"))
     args = parser.parse_args()
@@ -48,22 +52,30 @@ def main() -> int:
         if b not in ("threaded", "sync"):
             parser.error(f"unknown back-end {b!r}; choose threaded and/or sync")
     bridges = {"on": [True], "off": [False], "both": [True, False]}[args.bridge]
+    floods = {"on": [True], "off": [False], "both": [True, False]}[args.flood]
     lines = [
         f"`demo` preset (HDR desk spiral, 4 s, 80 frames), features {args.features}; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
-        "| seed | mode | bridge | back-end | frames | tracked | ATE RMSE [m] | ATE [% of path] "
-        "| bridges | new segments | relocalisations |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| seed | mode | bridge | flood predict | back-end | frames | tracked | predicted "
+        "| ATE RMSE [m] | ATE [% of path] | bridges | new segments | relocalisations |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for seed in (int(s) for s in args.seeds.split(",") if s):
         sequence = demo_sequence(seed=seed, progress=False)
         reference = load_trajectory(sequence / GROUND_TRUTH)
         for mode in modes:
-            for bridge in bridges if mode == "fusion" else [True]:
-                config = _core.Config.from_toml(f"[fusion]\nbridge = {str(bridge).lower()}")
+            variants = [
+                (bridge, flood)
+                for bridge in (bridges if mode == "fusion" else [True])
+                for flood in (floods if mode != "frames" else [True])
+            ]
+            for bridge, flood in variants:
+                config = _core.Config.from_toml(
+                    f"[fusion]\nbridge = {str(bridge).lower()}\nflood_predict = {str(flood).lower()}"
+                )
                 for backend in backends:
-                    tag = "" if bridge else "-nobridge"
+                    tag = ("" if bridge else "-nobridge") + ("" if flood else "-noflood")
                     out = args.out / f"seed{seed}" / f"{mode}{tag}-{backend}"
                     result, ev = evaluated_run(
                         sequence, out, reference, mode=mode, features=args.features, config=config,
@@ -71,8 +83,10 @@ def main() -> int:
                     )  # fmt: skip
                     t = result.tracking
                     shown = ("on" if bridge else "off") if mode == "fusion" else "–"
+                    shown_flood = ("on" if flood else "off") if mode != "frames" else "–"
                     lines.append(
-                        f"| {seed} | {mode} | {shown} | {backend} | {result.frames} | {result.tracked} "
+                        f"| {seed} | {mode} | {shown} | {shown_flood} | {backend} | {result.frames} "
+                        f"| {result.tracked} | {t.get('predicted', 0)} "
                         f"| {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} | {t.get('bridges', 0)} "
                         f"| {t.get('segments', 0)} | {t.get('relocalisations', 0)} |"
                     )

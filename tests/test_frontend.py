@@ -14,7 +14,7 @@ from sim_truth import simulator_like
 from dhptam import SE3, SO3, _core
 from dhptam.datasets import load_tumvie
 from dhptam.errors import InputError
-from dhptam.frontend import MODES, Frontend
+from dhptam.frontend import MODES, Frontend, _exposed_like, is_flood
 
 _NS = 1_000_000_000
 
@@ -227,26 +227,82 @@ def test_bridge_images_blend_the_usable_frame_with_the_neighbours_beta(sequence)
 
     frontend = Frontend(sequence, "fusion", prefetch=0)
     frames = [frontend.process(k) for k in range(len(frontend))]
-    switches = {"in": 0, "out": 0}
+    # Flood frames are predicted, not tracked: a bridge spans them, between the clean frames
+    # on either side, and never involves a flood frame.
+    clean = [f for f in frames if not f.flood]
+    switches = {"in": 0, "out": 0, "out across a flood": 0}
     for previous, current in itertools.pairwise(frames):
+        if previous.flood or current.flood:
+            assert frontend.bridge_images(previous, current) is None, current.index
+    for previous, current in itertools.pairwise(clean):
         bridge = frontend.bridge_images(previous, current)
         if previous.bias == current.bias:
             assert bridge is None, current.index
             continue
-        assert bridge is not None, current.index
         source, neighbour = (previous, current) if previous.bias == "aps" else (current, previous)
+        if source is current and current.index > previous.index + 1:
+            # Leaving a DVS-biased segment across a flood: no bridge, the frame's own image.
+            assert bridge is None, current.index
+            switches["out across a flood"] += 1
+            continue
+        assert bridge is not None, current.index
         switches["in" if source is previous else "out"] += 1
         assert (bridge.index, bridge.t_ns, bridge.bias) == (source.index, source.t_ns, neighbour.bias)
         assert bridge.beta_left == neighbour.beta_left and bridge.beta_right == neighbour.beta_right
         for side in ("left", "right"):
             beta = getattr(neighbour, f"beta_{side}")
-            expected = fuse(getattr(source, f"frame_{side}"), getattr(source, f"events_{side}"), beta)
+            # The source frame is first given the neighbour's exposure (mean and contrast).
+            frame = _exposed_like(getattr(source, f"frame_{side}"), getattr(neighbour, f"frame_{side}"))
+            expected = fuse(frame, getattr(source, f"events_{side}"), beta)
             assert np.array_equal(getattr(bridge, side), expected), side
         assert not np.array_equal(bridge.left, source.left)
-    assert switches["in"] >= 1 and switches["out"] >= 1, switches
+    assert switches["in"] >= 1 and switches["out"] >= 1 and switches["out across a flood"] >= 1, switches
     # Switched off, or outside the fusion mode: no bridge.
     off = Frontend(sequence, "fusion", _core.Config.from_toml("[fusion]\nbridge = false"), prefetch=0)
     pair = next((a, b) for a, b in itertools.pairwise(frames) if a.bias != b.bias)
     assert off.bridge_images(*pair) is None
     events = Frontend(sequence, "events", prefetch=0)
     assert events.bridge_images(events.process(pair[0].index), events.process(pair[1].index)) is None
+
+
+# -- illumination floods (issue 8, accuracy) -----------------------------------------------------
+
+
+def test_is_flood_needs_a_burst_of_one_polarity() -> None:
+    history = [30_000] * 10
+    assert is_flood(480_000, 1_000, history)  # a darkening ramp: OFF events only
+    assert is_flood(480_000, 479_000, history)  # a brightening one: ON only
+    assert not is_flood(480_000, 240_000, history)  # fast motion: as many ON as OFF
+    assert not is_flood(60_000, 0, history)  # one polarity but no burst (2x the median)
+    assert is_flood(90_000, 0, history, ratio=2.5) and not is_flood(90_000, 0, history, ratio=4.0)
+    assert not is_flood(480_000, 1_000, history, ratio=0.0)  # detection off
+    assert not is_flood(480_000, 1_000, [])  # nothing to compare with (frame 0)
+    # The median, not the mean: earlier floods in the history do not hide the next one.
+    assert is_flood(480_000, 1_000, [30_000] * 7 + [500_000] * 3)
+
+
+def test_floods_are_flagged_at_the_lighting_transitions_of_the_hdr_profile(sequence) -> None:  # type: ignore[no-untyped-def]
+    """Every change of light of the ``hdr`` profile floods the event cameras (all pixels fire,
+    one polarity); those windows and only those are flagged: none inside a segment, at least
+    one at each transition. The frames mode reads no events and flags nothing."""
+    fe = Frontend(sequence, "fusion", prefetch=0)
+    frames = [fe.process(k) for k in range(len(fe))]
+    duration_s = 1.0  # the tiny preset
+    transitions = [b * duration_s for _, _, b in _core.sim_profile_segments("hdr")][:-1]
+    period = (frames[1].t_ns - frames[0].t_ns) / _NS
+    for t_change in transitions:
+        near = [f for f in frames if abs(f.t_ns / _NS - t_change) < 2.5 * period]
+        assert any(f.flood for f in near), (t_change, [(f.index, f.flood) for f in near])
+    for f in frames:
+        if f.flood:
+            assert min(abs(f.t_ns / _NS - t) for t in transitions) < 2.5 * period, f.index
+            stats = f.e3ct_stats
+            assert stats is not None
+            share_on = (stats.on_left + stats.on_right) / (stats.events_left + stats.events_right)
+            assert max(share_on, 1.0 - share_on) >= 0.8, f.index
+    # The flag does not depend on the order frames are processed in.
+    last_flood = max(f.index for f in frames if f.flood)
+    assert Frontend(sequence, "fusion", prefetch=0).process(last_flood).flood
+    off = Frontend(sequence, "fusion", _core.Config.from_toml("[fusion]\nflood_ratio = 0"), prefetch=0)
+    assert not off.process(last_flood).flood
+    assert not any(f.flood for f in Frontend(sequence, "frames", prefetch=0))

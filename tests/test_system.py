@@ -12,6 +12,7 @@ import pytest
 from slam_synthetic import CALIB, Frame, ate, generate
 
 import dhptam
+from dhptam import SE3
 
 
 def run(frames: list[Frame], config: dhptam.Config | None = None) -> dhptam.System:
@@ -199,7 +200,7 @@ def test_bridge_keyframes_keep_one_map_across_an_appearance_switch() -> None:
     assert states[1:].count("initialised") == 0, states
     assert "lost" not in states
     totals = system.tracking_totals()
-    assert totals == {"bridges": 2, "bridges_refused": 0, "segments": 0, "relocalisations": 0}
+    assert totals == {"bridges": 2, "bridges_refused": 0, "segments": 0, "relocalisations": 0, "predicted": 0}
     assert ate(positions(system), truth) < 0.03
     # The same switches without bridges start two new segments.
     off = dhptam.System(CALIB, None, threaded=False)
@@ -221,3 +222,87 @@ def test_bridge_is_refused_unless_it_is_the_last_tracked_frame() -> None:
     bad = type(f0.left)(np.zeros((3, 3), np.float32), f0.left.descriptors[:3])
     with pytest.raises(dhptam.DhptamError, match="keypoints"):
         system.bridge(frames[2].t_ns, (bad, f0.right), (f0.left, f0.right))
+
+
+# -- predicted frames across illumination floods (issue 8, accuracy) ----------------------------
+
+
+def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone() -> None:
+    frames = generate(frames=120, seed=1)
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames])
+    system = dhptam.System(CALIB, None, threaded=False)
+    first = system.predict(frames[0].t_ns)
+    assert first.state == "lost" and len(system.trajectory()[0]) == 0  # nothing to predict from
+    for f in frames[:60]:
+        system.track(f.t_ns, f.left, f.right)
+    keyframes, points = len(system.keyframe_trajectory()[0]), len(system.map_points())
+    predicted = [system.predict(f.t_ns) for f in frames[60:63]]
+    assert [r.state for r in predicted] == ["predicted"] * 3
+    assert all(r.inliers == 0 and not r.keyframe for r in predicted)
+    assert (len(system.keyframe_trajectory()[0]), len(system.map_points())) == (keyframes, points)
+    # Each predicted pose is the last tracked one moved on by the mean motion of the last
+    # `[tracking] predict_velocity_frames` (4) steps, (cam_from_world(59) world_from_cam(55))^(1/4).
+    t, poses = system.trajectory()
+    assert t.tolist() == [f.t_ns for f in frames[:63]]
+    assert all(np.allclose(poses[60 + k], r.pose) for k, r in enumerate(predicted))
+    step = SE3.exp(SE3.from_matrix(np.linalg.inv(poses[59]) @ poses[55]).log() / 4.0).matrix()
+    for k in range(3):
+        expected = poses[59] @ np.linalg.matrix_power(np.linalg.inv(step), k + 1)
+        assert np.allclose(poses[60 + k], expected, atol=1e-9), k
+    # Tracking resumes against the map after the predicted frames; the camera moves along a
+    # circle at a constant rate, so the predicted frames keep the ATE of a fully tracked run.
+    states = [system.track(f.t_ns, f.left, f.right).state for f in frames[63:]]
+    assert states == ["ok"] * len(states), states
+    assert system.tracking_totals()["predicted"] == 3
+    assert ate(positions(system), truth) < 0.03
+
+
+def test_a_bridge_spans_predicted_frames_between_two_appearances() -> None:
+    """Frames 40-42 are a flood (predicted), frames 43-59 look the other way. The bridge from
+    the last tracked frame (39) is inserted after the flood, at frame 39's pose: one map, no
+    new segment, the ATE of an unswitched run; without the bridge a new segment starts."""
+    plain = generate(frames=80, seed=3)
+    other = _switch_appearance(plain, at=0)
+    truth = np.array([f.world_from_cam[:3, 3] for f in plain])
+
+    def run_with_flood(bridge: bool) -> tuple[dhptam.System, list[str], list[Any]]:
+        system = dhptam.System(CALIB, None, threaded=False)
+        states: list[str] = []
+        bridges: list[Any] = []
+        for i, (f, g) in enumerate(zip(plain, other, strict=True)):
+            if 40 <= i < 43:
+                states.append(system.predict(f.t_ns).state)
+                continue
+            if i == 43 and bridge:
+                bridges.append(system.bridge(plain[39].t_ns, (plain[39].left, plain[39].right),
+                                             (other[39].left, other[39].right)))  # fmt: skip
+            if i == 60 and bridge:
+                states.append(system.track(g.t_ns, g.left, g.right).state)
+                bridges.append(system.bridge(f.t_ns, (g.left, g.right), (f.left, f.right)))
+                continue
+            seen = g if 43 <= i < 60 else f
+            states.append(system.track(seen.t_ns, seen.left, seen.right).state)
+        return system, states, bridges
+
+    system, states, bridges = run_with_flood(True)
+    assert all(b is not None and b.linked >= 50 for b in bridges), bridges
+    assert states[40:43] == ["predicted"] * 3
+    assert states[1:].count("initialised") == 0 and "lost" not in states, states
+    totals = system.tracking_totals()
+    assert totals == {"bridges": 2, "bridges_refused": 0, "segments": 0, "relocalisations": 0, "predicted": 3}
+    assert len(system.trajectory()[0]) == 80
+    assert ate(positions(system), truth) < 0.03
+    # The bridge keyframe sits at frame 39's pose, not at the last predicted frame's (three
+    # steps of about 4 cm on).
+    kf_t, kf_poses = system.keyframe_trajectory()
+    _, poses = system.trajectory()
+    bridge_position = kf_poses[kf_t.tolist().index(plain[39].t_ns)][:3, 3]
+    assert np.linalg.norm(bridge_position - poses[39][:3, 3]) < 0.005
+    assert np.linalg.norm(bridge_position - poses[42][:3, 3]) > 0.05
+    # A bridge from a frame before the last measured one is refused.
+    assert (
+        system.bridge(plain[50].t_ns, (plain[50].left, plain[50].right), (other[50].left, other[50].right))
+        is None
+    )
+    off, _, _ = run_with_flood(False)
+    assert off.tracking_totals()["segments"] >= 1

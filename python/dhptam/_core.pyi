@@ -416,6 +416,8 @@ class PySystem:
         right_keypoints: npt.NDArray[np.float32],
         right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
     ) -> tuple[_FloatArray, str, int, bool]: ...
+    # Predicted (untracked) frames across illumination floods (issue 8, accuracy).
+    def predict(self, t_ns: int) -> tuple[_FloatArray, str, int, bool]: ...
     # Bridge keyframes across fusion-mode switches (issue 8, accuracy).
     def bridge(
         self,

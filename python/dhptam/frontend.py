@@ -15,6 +15,14 @@ For fusion frame k (time ``t_f^k = t_cam + t_exp / 2``) the pipeline is
 Modes: ``fusion`` (the above), ``frames`` (rectified frames only; no event is read) and
 ``events`` (the warped E3CT intensity alone, β = 1).
 
+Illumination floods (``[fusion] flood_*``): a global lighting change makes every event pixel
+fire as the light ramps, so a window holds many times the usual event count, almost all of
+one polarity, and its E3CT shows the sensor's threshold pattern instead of scene edges.
+:func:`is_flood` flags such a window (count above ``flood_ratio`` × the median of the previous
+``flood_history`` windows and one polarity's share at least ``flood_polarity``);
+:attr:`FrontendFrame.flood` carries the flag, the run then predicts the pose of that frame
+instead of tracking it (``flood_predict``) and :meth:`Frontend.bridge_images` spans the flood.
+
 Depth of the warp plane: ``[fusion] plane_depth_m`` (default 0 = infinity, a rotation-only
 homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM on the first
 well-exposed frame pair. Infinity is the default because nothing about the scene is known before tracking
@@ -67,7 +75,8 @@ class RectifiedCalibration(NamedTuple):
 
 @dataclass(frozen=True)
 class E3ctStats:
-    """Event statistics of one frame's window."""
+    """Event statistics of one frame's window (``on_left``/``on_right``: ON events among
+    ``events_left``/``events_right``)."""
 
     window_start_ns: int
     window_end_ns: int
@@ -76,6 +85,31 @@ class E3ctStats:
     rectified_left: int
     rectified_right: int
     scales: tuple[float, ...]
+    on_left: int = 0
+    on_right: int = 0
+
+
+def is_flood(
+    count: int, on_count: int, history: npt.ArrayLike, *, ratio: float = 2.5, polarity: float = 0.8
+) -> bool:
+    """Whether an event window is an illumination flood (a global lighting change).
+
+    ``count`` events of which ``on_count`` are ON; ``history`` the event counts of the
+    previous windows. A flood holds more than ``ratio`` times their median and at least a
+    ``polarity`` share of one polarity: a lighting ramp moves every pixel's log intensity the
+    same way, while scene motion (even fast, with many events) gives both polarities.
+    ``ratio = 0`` or an empty history: never.
+
+    >>> is_flood(480_000, 2_000, [30_000] * 10)
+    True
+    >>> is_flood(300_000, 150_000, [30_000] * 10)  # fast motion: both polarities
+    False
+    """
+    counts = np.asarray(history, np.float64)
+    if ratio <= 0.0 or counts.size == 0 or count <= 0:
+        return False
+    share_on = on_count / count
+    return bool(count > ratio * float(np.median(counts)) and max(share_on, 1.0 - share_on) >= polarity)
 
 
 @dataclass(frozen=True)
@@ -87,7 +121,8 @@ class FrontendFrame:
     ``frame_right`` are the rectified frames alone and ``events_left``/``events_right`` the
     normalised E3CT warped into them, ``(H, W, C)`` float32 in [0, 1] (``None`` in mode
     ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode
-    (``aps``, ``dvs``, ``frames``, ``events``).
+    (``aps``, ``dvs``, ``frames``, ``events``). ``flood``: the event window is an
+    illumination flood (:func:`is_flood`; always ``False`` in mode ``frames``).
     """
 
     index: int
@@ -103,6 +138,7 @@ class FrontendFrame:
     frame_right: _U8
     events_left: _F32 | None
     events_right: _F32 | None
+    flood: bool = False
 
 
 @dataclass(frozen=True)
@@ -111,7 +147,8 @@ class BridgeImages:
 
     When the β mode of frame k differs from frame k−1's (``aps`` ↔ ``dvs``), the frame whose
     raw frame is usable (the APS-biased one: k−1 when entering a dark or saturated segment, k
-    when leaving it) is blended again with the other frame's β, so that the tracker can see
+    when leaving it) is blended again with the other frame's β, its frame first given the
+    other frame's exposure (mean and contrast), so that the tracker can see
     the same instant both ways and insert a bridge keyframe (``dhptam.System.bridge``).
     ``index``/``t_ns`` name that frame; ``bias`` and ``beta_left``/``beta_right`` are the
     mode and β of this blend (the neighbour's).
@@ -124,6 +161,21 @@ class BridgeImages:
     bias: str
     beta_left: float
     beta_right: float
+
+
+def _exposed_like(frame: _U8, like: _U8) -> _U8:
+    """``frame`` with the mean and contrast (standard deviation) of ``like``.
+
+    A bridge re-renders the frame with usable raw data in the neighbouring DVS-biased mode;
+    the neighbour's own frame is dark or saturated, so in its blend the frame part is nearly
+    flat. Giving the bridge's frame the neighbour's exposure statistics makes the bridge look
+    like the neighbour (events on a nearly flat background) instead of carrying texture the
+    neighbour cannot show.
+    """
+    f = frame.astype(np.float32)
+    g = like.astype(np.float32)
+    out = float(g.mean()) + (f - float(f.mean())) * (float(g.std()) / max(float(f.std()), 1e-3))
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 def _with_mode(config: _core.Config, mode: str) -> _core.Config:
@@ -193,6 +245,12 @@ class Frontend:
         fusion_cfg = settings["fusion"]
         self.plane_depth_m: float = float(fusion_cfg["plane_depth_m"])
         self.bridge_enabled: bool = bool(fusion_cfg["bridge"])
+        self.flood_ratio: float = float(fusion_cfg["flood_ratio"])
+        self.flood_polarity: float = float(fusion_cfg["flood_polarity"])
+        self.flood_history: int = int(fusion_cfg["flood_history"])
+        self.flood_predict: bool = bool(fusion_cfg["flood_predict"])
+        # Event counts (left + right) of the windows seen, by frame index (flood reference).
+        self._window_counts: dict[int, int] = {}
         self.align_px: tuple[float, float] = (
             float(fusion_cfg["align_px"][0]),
             float(fusion_cfg["align_px"][1]),
@@ -350,18 +408,52 @@ class Frontend:
         )
 
     def _rectified_events(self, side: str, t0: int, t1: int) -> tuple[EventWindow, int]:
+        window, count, _ = self._rectified_events_counted(side, t0, t1)
+        return window, count
+
+    def _rectified_events_counted(self, side: str, t0: int, t1: int) -> tuple[EventWindow, int, int]:
+        """The rectified window, its raw event count and its raw ON-event count."""
         raw = self.sequence.events[side].window(t0, t1)
         x, y, t, p = self._rectifiers[side].apply(raw.x, raw.y, raw.t_ns, raw.p, t0, t1)
-        return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw)
+        return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw), int(np.count_nonzero(raw.p))
+
+    def _window_count(self, index: int) -> int:
+        """Raw events (left + right) in the window of frame ``index``, read once."""
+        count = self._window_counts.get(index)
+        if count is None:
+            t0, t1 = self.window_ns(index)
+            count = sum(len(self.sequence.events[side].window(t0, t1)) for side in ("left", "right"))
+            self._window_counts[index] = count
+        return count
+
+    def flood(self, index: int, stats: E3ctStats) -> bool:
+        """Whether frame ``index``'s window (``stats``) is an illumination flood, against the
+        previous ``[fusion] flood_history`` windows (:func:`is_flood`; frame 0 never is)."""
+        count = stats.events_left + stats.events_right
+        self._window_counts[index] = count
+        # Bounded memory on long runs: keep the counts a later window can still ask for.
+        for old in [k for k in self._window_counts if k < index - 2 * self.flood_history]:
+            del self._window_counts[old]
+        if self.flood_ratio <= 0.0:
+            return False
+        history = [self._window_count(k) for k in range(max(0, index - self.flood_history), index)]
+        return is_flood(
+            count,
+            stats.on_left + stats.on_right,
+            history,
+            ratio=self.flood_ratio,
+            polarity=self.flood_polarity,
+        )
 
     def _warped_events(self, t0: int, t1: int) -> tuple[dict[str, _F32], E3ctStats]:
         cfg = self._events_cfg
         w, h = int(self.event_rect.width), int(self.event_rect.height)
         raw_counts: dict[str, int] = {}
+        on_counts: dict[str, int] = {}
         tensors = []
         rect_counts: dict[str, int] = {}
         for side in ("left", "right"):
-            window, raw_counts[side] = self._rectified_events(side, t0, t1)
+            window, raw_counts[side], on_counts[side] = self._rectified_events_counted(side, t0, t1)
             rect_counts[side] = len(window)
             tensors.append(
                 e3ct(
@@ -405,6 +497,8 @@ class Frontend:
             rectified_left=rect_counts["left"],
             rectified_right=rect_counts["right"],
             scales=tuple(float(s) for s in scales),
+            on_left=on_counts["left"],
+            on_right=on_counts["right"],
         )
         return out, stats
 
@@ -448,27 +542,46 @@ class Frontend:
             frame_right=frames["right"],
             events_left=events["left"],
             events_right=events["right"],
+            flood=self.flood(index, stats),
         )
 
     def bridge_images(self, previous: FrontendFrame, current: FrontendFrame) -> BridgeImages | None:
-        """The bridge rendering at a switch between consecutive frames ``previous`` and
-        ``current`` (see :class:`BridgeImages`); ``None`` without a switch, outside the
+        """The bridge rendering at a switch between frames ``previous`` and ``current`` (see
+        :class:`BridgeImages`): consecutive ones, or, entering a DVS-biased segment, the last
+        clean frame before a flood and the first after it when flood frames are predicted
+        (``[fusion] flood_predict``; leaving one across a flood there is no bridge);
+        ``None`` without a switch, when either is a predicted flood frame, outside the
         ``fusion`` mode or with ``[fusion] bridge = false``."""
         if (
             self.mode != "fusion"
             or not self.bridge_enabled
+            or (self.flood_predict and (previous.flood or current.flood))
             or current.index <= previous.index
             or {previous.bias, current.bias} != {"aps", "dvs"}
         ):
             return None
         source, neighbour = (previous, current) if previous.bias == "aps" else (current, previous)
+        if source is current and current.index > previous.index + 1:
+            # Leaving a DVS-biased segment across a flood: the first clean frame is tracked with
+            # its own (APS-biased) image. Its old-mode rendering, after several predicted
+            # frames, locked onto a wrong pose on the repetitive event edges (70-90 mm off on
+            # both demo seeds), worse than a new map segment that loop closing joins.
+            return None
         if source.events_left is None or source.events_right is None:
             return None
         return BridgeImages(
             index=source.index,
             t_ns=source.t_ns,
-            left=fuse(source.frame_left, source.events_left, neighbour.beta_left),
-            right=fuse(source.frame_right, source.events_right, neighbour.beta_right),
+            left=fuse(
+                _exposed_like(source.frame_left, neighbour.frame_left),
+                source.events_left,
+                neighbour.beta_left,
+            ),
+            right=fuse(
+                _exposed_like(source.frame_right, neighbour.frame_right),
+                source.events_right,
+                neighbour.beta_right,
+            ),
             bias=neighbour.bias,
             beta_left=neighbour.beta_left,
             beta_right=neighbour.beta_right,
@@ -503,4 +616,12 @@ class Frontend:
         self.close()
 
 
-__all__ = ["MODES", "BridgeImages", "E3ctStats", "Frontend", "FrontendFrame", "RectifiedCalibration"]
+__all__ = [
+    "MODES",
+    "BridgeImages",
+    "E3ctStats",
+    "Frontend",
+    "FrontendFrame",
+    "RectifiedCalibration",
+    "is_flood",
+]

@@ -71,12 +71,13 @@ class RunResult:
     files: dict[str, Path] = field(default_factory=dict)
     tracking: dict[str, int] = field(default_factory=dict)
     """Bridge keyframes at fusion-mode switches (``bridges``, ``bridges_refused``), new map
-    ``segments`` and ``relocalisations`` (``dhptam.System.tracking_totals``)."""
+    ``segments``, ``relocalisations`` and flood frames ``predicted`` instead of tracked
+    (``dhptam.System.tracking_totals``)."""
 
     @property
     def tracked(self) -> int:
-        """Frames whose pose came from tracking (not lost)."""
-        return sum(n for s, n in self.states.items() if s != "lost")
+        """Frames whose pose came from tracking (not lost, not only predicted)."""
+        return sum(n for s, n in self.states.items() if s not in ("lost", "predicted"))
 
     @property
     def fps(self) -> float:
@@ -527,7 +528,9 @@ def _track_all(
         t0 = time.perf_counter()
         frame = frontend.process(index)
         bridge = None if previous[0] is None else frontend.bridge_images(previous[0], frame)
-        previous[0] = frame
+        # A flood frame is predicted, not tracked: the bridge spans it, from the last clean frame.
+        if not (frame.flood and frontend.flood_predict):
+            previous[0] = frame
         return frame, time.perf_counter() - t0, bridge
 
     def extract(item: tuple[Any, float, Any]) -> tuple[Any, float, Any, Any, float, Any]:
@@ -544,7 +547,10 @@ def _track_all(
     bar = _progress(frontend.stop - frontend.start, progress, f"dhptam {frontend.mode}")
     with _interrupts_between_frames() as interrupt_pending:
         try:
-            _track_frames(extracted, system, outputs, states, realtime, bar, sink, interrupt_pending)
+            _track_frames(
+                extracted, system, outputs, states, realtime, bar, sink, interrupt_pending,
+                frontend.flood_predict,
+            )  # fmt: skip
         finally:
             extracted.close()
             if bar is not None:
@@ -560,10 +566,13 @@ def _track_frames(
     bar: Any,
     sink: Any,
     interrupt_pending: Callable[[], bool],
+    flood_predict: bool = False,
 ) -> None:
     """The tracking loop on the caller's thread: one frame tracked and recorded per step; a
     Ctrl-C takes effect between frames, so the trajectory and ``frames.csv`` hold the same
-    frames."""
+    frames. With ``flood_predict`` a flood frame's pose is predicted by the motion model
+    (``System.predict``) instead of tracked, and the last clean frame stays the one a bridge
+    keyframe may start from."""
     wall0 = time.perf_counter()
     t_first: int | None = None
     last: tuple[int, Any] | None = None  # (frame index, (left, right) features it was tracked with)
@@ -578,8 +587,11 @@ def _track_frames(
         if outputs.recorder is not None:
             outputs.recorder.add_frame(frame.index)
         t0 = time.perf_counter()
-        r, bridged = _track_bridged(system, frame, (left, right), bridge, last)
-        last = (frame.index, (left, right))
+        if frame.flood and flood_predict:
+            r, bridged = system.predict(frame.t_ns), "none"
+        else:
+            r, bridged = _track_bridged(system, frame, (left, right), bridge, last)
+            last = (frame.index, (left, right))
         t_track = time.perf_counter() - t0
         states[r.state] += 1
         sink.frame(frame, left, right, r)
@@ -594,6 +606,7 @@ def _track_frames(
                 "keypoints_right": len(right.keypoints),
                 "beta_left": f"{frame.beta_left:.4f}",
                 "bias": frame.bias,
+                "flood": int(frame.flood),
                 "bridge": bridged,
                 "frontend_s": round(t_front, 6),
                 "extraction_s": round(t_extract, 6),

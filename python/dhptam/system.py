@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from . import _core
 from ._core import Config
 
-TrackState = Literal["initialised", "ok", "lost", "relocalised"]
+TrackState = Literal["initialised", "ok", "lost", "relocalised", "predicted"]
 
 
 class FeatureSet(Protocol):
@@ -95,6 +95,23 @@ class System:
             keyframe=keyframe,
         )
 
+    def predict(self, t_ns: int) -> TrackResult:
+        """Moves the pose on to ``t_ns`` with the constant-velocity model instead of tracking
+        a frame whose images carry no usable measurement (an event window flooded by a
+        lighting change). The pose is recorded in the trajectory with state ``predicted``;
+        the map and the motion model are unchanged, so the next frame is tracked against the
+        map from an extrapolated prediction (and a bridge keyframe may still be inserted at
+        the last tracked frame). ``lost`` (nothing recorded) before initialisation or after a
+        lost frame."""
+        pose, state, inliers, keyframe = self._core.predict(int(t_ns))
+        return TrackResult(
+            t_ns=int(t_ns),
+            pose=pose,
+            state=state,  # type: ignore[arg-type]
+            inliers=inliers,
+            keyframe=keyframe,
+        )
+
     def bridge(
         self,
         t_ns: int,
@@ -125,7 +142,8 @@ class System:
 
     def tracking_totals(self) -> dict[str, int]:
         """Since the start: ``bridges`` inserted, ``bridges_refused``, new map ``segments``
-        (started at the constant-velocity pose) and ``relocalisations``."""
+        (started at the constant-velocity pose), ``relocalisations`` and ``predicted`` frames
+        (:meth:`predict`)."""
         return self._core.tracking_totals()
 
     def trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:

@@ -228,6 +228,22 @@ config_section! {
         /// map stays one piece across the switch. Off: a switch that cannot be tracked
         /// starts a new map segment (`[tracking] reinitialise`).
         bridge: bool = true,
+        /// Illumination floods (issue 8): an event window holding more than `flood_ratio` times
+        /// the median event count of the previous `flood_history` windows, with at least
+        /// `flood_polarity` of its events of one polarity, is a global lighting change (every
+        /// pixel fires as the light ramps), not scene motion; its E3CT shows the sensor's
+        /// threshold pattern, not edges. 0 turns the detection off.
+        flood_ratio: f64 = 2.5,
+        /// Share of one polarity (ON or OFF) in a window, in (0.5, 1], above which a window
+        /// with a flood's event count is a flood (scene motion gives both polarities).
+        flood_polarity: f64 = 0.8,
+        /// Previous windows whose median event count a window is compared with.
+        flood_history: u32 = 10,
+        /// Flood frames are not tracked: the tracker moves the pose on with its motion model
+        /// (`System::predict`: no matching, no keyframe, no new map segment) and tracks the
+        /// next clean frame against the map; bridges at a fusion-mode switch span the flood.
+        /// Off: flood frames are tracked like any other (still flagged in `frames.csv`).
+        flood_predict: bool = true,
     }
 }
 
@@ -288,6 +304,11 @@ config_section! {
         /// event-dominated images); the old keyframes stay for relocalisation and loop
         /// closing. Off: the system stays lost until relocalisation succeeds.
         reinitialise: bool = true,
+        /// Frames whose mean motion is the velocity of predicted (untracked) frames
+        /// (`System::predict`, across illumination floods): the motion between the last
+        /// measured frame and the one this many frames before it, taken to the 1/n power; 1
+        /// uses the last frame-to-frame motion (noisier on event-dominated images).
+        predict_velocity_frames: u32 = 4,
         /// Levenberg–Marquardt iterations of each motion-only refinement.
         refine_iterations: u32 = 10,
         /// Huber scale and outlier bound of the refinement, pixels (√7.815: the 95 % χ²
@@ -721,6 +742,24 @@ impl FusionConfig {
             self.align_px.iter().all(|v| v.is_finite()),
             "two finite offsets",
             format!("{:?}", self.align_px),
+        )?;
+        check(
+            "fusion.flood_ratio",
+            self.flood_ratio == 0.0 || (self.flood_ratio.is_finite() && self.flood_ratio > 1.0),
+            "0 (off) or a ratio above 1",
+            self.flood_ratio,
+        )?;
+        check(
+            "fusion.flood_polarity",
+            self.flood_polarity > 0.5 && self.flood_polarity <= 1.0,
+            "a share in (0.5, 1]",
+            self.flood_polarity,
+        )?;
+        check(
+            "fusion.flood_history",
+            self.flood_history >= 1,
+            "at least 1 window",
+            self.flood_history,
         )
     }
 }

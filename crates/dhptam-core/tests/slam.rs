@@ -735,3 +735,83 @@ fn bridge_is_refused_for_a_frame_that_is_not_the_last_tracked() {
     let r = track(&mut system, &negated(&frames[3]));
     assert_eq!(r.state, TrackState::Ok);
 }
+
+/// Issue 8, illumination floods: frames 40-42 are predicted (`System::predict`), frames 43-59
+/// look the other way. The bridge from the last measured frame (39) goes in after the flood,
+/// at frame 39's pose; the next frame, seen the other way, tracks against it: no new segment.
+#[test]
+fn a_bridge_spans_predicted_frames() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 70,
+        turns: 0.2,
+        seed: 9,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let mut config = Config::default();
+    config.loop_closing.min_score = 1.0; // no relocalisation: a failure starts a segment
+    let mut system = System::new(o.calib, config, false).unwrap();
+    // Nothing to predict from before initialisation: lost, nothing recorded.
+    assert_eq!(
+        system.predict(frames[0].t_ns).unwrap().state,
+        TrackState::Lost
+    );
+    assert!(system.trajectory().is_empty());
+    for f in &frames[..40] {
+        track(&mut system, f);
+    }
+    let keyframes = system.with_map(|m| m.keyframes.len());
+    for f in &frames[40..43] {
+        let r = system.predict(f.t_ns).unwrap();
+        assert_eq!(
+            (r.state, r.inliers, r.keyframe),
+            (TrackState::Predicted, 0, false)
+        );
+    }
+    assert_eq!(system.with_map(|m| m.keyframes.len()), keyframes);
+    let b = system
+        .bridge(
+            frames[39].t_ns,
+            features(&frames[39]),
+            features(&negated(&frames[39])),
+        )
+        .unwrap()
+        .expect("bridge from the last measured frame refused");
+    assert!(b.linked >= 50 && b.other_points >= 50, "{b:?}");
+    let at_bridge = system.with_map(|m| m.keyframes[&b.keyframe].world_from_cam);
+    let trajectory = system.trajectory();
+    assert_eq!(trajectory.len(), 43);
+    // At frame 39's pose (up to the bundle adjustment that ran on the bridge), not at the
+    // last predicted frame's three steps on.
+    let to_39 = (at_bridge.translation - trajectory[39].1.translation).norm();
+    let to_42 = (at_bridge.translation - trajectory[42].1.translation).norm();
+    assert!(
+        to_39 < 0.25 * to_42,
+        "{to_39} m from frame 39, {to_42} m from frame 42"
+    );
+    for f in &frames[43..60] {
+        let r = track(&mut system, &negated(f));
+        assert_eq!(r.state, TrackState::Ok, "frame at {} ns", f.t_ns);
+    }
+    let totals = system.tracking_totals();
+    assert_eq!(
+        (totals.predicted, totals.segments, totals.bridges),
+        (3, 0, 1)
+    );
+    // A bridge from an older frame than the last measured one is refused.
+    assert!(system
+        .bridge(
+            frames[50].t_ns,
+            features(&frames[50]),
+            features(&negated(&frames[50]))
+        )
+        .unwrap()
+        .is_none());
+    let truth: Vec<Vector3<f64>> = frames[..60]
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    let error = ate(&positions(&system.trajectory()), &truth);
+    assert!(error < 0.03, "ATE {error} m");
+}

@@ -139,6 +139,24 @@ impl PySystem {
         ))
     }
 
+    /// Moves the pose on to `t_ns` with the motion model instead of tracking (a flooded
+    /// event window); returns (pose (4, 4) world_from_cam, state, 0, False).
+    fn predict<'py>(
+        &self,
+        py: Python<'py>,
+        t_ns: i64,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, &'static str, usize, bool)> {
+        let r = py
+            .detach_guarded("slam::predict", || self.with(|s| s.predict(t_ns)))?
+            .py()?;
+        Ok((
+            pose_array(py, &r.world_from_cam),
+            r.state.as_str(),
+            r.inliers,
+            r.keyframe,
+        ))
+    }
+
     /// Bridge keyframe at the last tracked frame `t_ns` (see `dhptam.System.bridge`):
     /// `primary` features are the image that frame was tracked with, `other` the same data
     /// rendered the other way. Returns (keyframe id, re-matched map points, points from the
@@ -175,7 +193,7 @@ impl PySystem {
         Ok(b.map(|b| (b.keyframe, b.linked, b.other_points)))
     }
 
-    /// {bridges, bridges_refused, segments, relocalisations} since the start.
+    /// {bridges, bridges_refused, segments, relocalisations, predicted} since the start.
     fn tracking_totals<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let t = self.with(|s| s.tracking_totals());
         let d = PyDict::new(py);
@@ -183,6 +201,7 @@ impl PySystem {
         d.set_item("bridges_refused", t.bridges_refused)?;
         d.set_item("segments", t.segments)?;
         d.set_item("relocalisations", t.relocalisations)?;
+        d.set_item("predicted", t.predicted)?;
         Ok(d)
     }
 

@@ -122,16 +122,20 @@ pub enum TrackState {
     Lost,
     /// Recovered from loss by relocalisation.
     Relocalised,
+    /// Not measured: the pose was moved on with the motion model (`System::predict`, e.g.
+    /// an event window flooded by a lighting change); the map is unchanged.
+    Predicted,
 }
 
 impl TrackState {
-    /// `"initialised"`, `"ok"`, `"lost"` or `"relocalised"`.
+    /// `"initialised"`, `"ok"`, `"lost"`, `"relocalised"` or `"predicted"`.
     pub fn as_str(self) -> &'static str {
         match self {
             TrackState::Initialised => "initialised",
             TrackState::Ok => "ok",
             TrackState::Lost => "lost",
             TrackState::Relocalised => "relocalised",
+            TrackState::Predicted => "predicted",
         }
     }
 }

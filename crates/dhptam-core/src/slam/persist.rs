@@ -348,6 +348,8 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         velocity,
         reference: has_reference.then_some(reference),
         lost: r.u8()? != 0,
+        // Not saved: a loaded map resumes from its last frame as a measured one.
+        measured: last,
     };
     let mut map = Map {
         next_keyframe: r.u64()?,

@@ -13,8 +13,8 @@ use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
-    bootstrap, bridge_keyframe, commit_tracked, last_pose, reinitialise, stereo_match,
-    track_local_map, Bridge, StereoFrame, TrackContext, TrackerState,
+    bootstrap, bridge_keyframe, commit_tracked, last_pose, predict_only, reinitialise,
+    stereo_match, track_local_map, Bridge, StereoFrame, TrackContext, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -188,6 +188,8 @@ pub struct TrackingTotals {
     pub segments: u64,
     /// Frames relocalised against an older keyframe.
     pub relocalisations: u64,
+    /// Frames moved on by the motion model without being tracked ([`System::predict`]).
+    pub predicted: u64,
 }
 
 /// The mapping thread logs the map's size (INFO) after every this many keyframe ids.
@@ -502,6 +504,55 @@ impl System {
             state: outcome.state,
             inliers: outcome.inliers,
             keyframe: outcome.keyframe.is_some(),
+        })
+    }
+
+    /// Moves the pose on to `t_ns` with the constant-velocity model instead of tracking a
+    /// frame whose images carry no usable measurement (e.g. an event window flooded by a
+    /// lighting change; see [`super::tracking::predict_only`]): the pose is recorded in the
+    /// trajectory with state `Predicted`, and neither the map nor the motion model changes,
+    /// so the next frame is tracked against the map from an extrapolated prediction. Before
+    /// initialisation, after a lost frame or without a reference keyframe there is nothing
+    /// to extrapolate from: the result is `Lost` at the last pose (not recorded, the tracker
+    /// state unchanged).
+    pub fn predict(&mut self, t_ns: i64) -> Result<TrackResult> {
+        if self.closed {
+            return Err(Error::invalid(
+                "system",
+                "a running system",
+                "one shut down",
+            ));
+        }
+        let shared = Arc::clone(&self.shared);
+        let outcome = {
+            let mut map = write_lock(&shared.map);
+            let frames = shared.config.tracking.predict_velocity_frames;
+            predict_only(&mut map, &mut self.state, t_ns, frames)
+        };
+        Ok(match outcome {
+            Some(o) => {
+                self.totals.predicted += 1;
+                TrackResult {
+                    t_ns,
+                    world_from_cam: o.world_from_cam,
+                    state: o.state,
+                    inliers: 0,
+                    keyframe: false,
+                }
+            }
+            None => {
+                let world_from_cam = {
+                    let map = read_lock(&shared.map);
+                    last_pose(&map, &self.state).unwrap_or_else(Se3::identity)
+                };
+                TrackResult {
+                    t_ns,
+                    world_from_cam,
+                    state: TrackState::Lost,
+                    inliers: 0,
+                    keyframe: false,
+                }
+            }
         })
     }
 

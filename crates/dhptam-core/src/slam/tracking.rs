@@ -216,6 +216,9 @@ pub struct TrackerState {
     pub reference: Option<u64>,
     /// Whether the last frame was lost.
     pub lost: bool,
+    /// The last frame whose pose was measured (tracked, bootstrapped, re-initialised or
+    /// bridged); `last` differs from it after frames moved on by [`predict_only`].
+    pub measured: Option<FrameRecord>,
 }
 
 impl Default for TrackerState {
@@ -225,6 +228,7 @@ impl Default for TrackerState {
             velocity: Se3::identity(),
             reference: None,
             lost: false,
+            measured: None,
         }
     }
 }
@@ -471,6 +475,7 @@ pub fn bootstrap(
         velocity: Se3::identity(),
         reference: Some(id),
         lost: false,
+        measured: Some(record),
     };
     FrameOutcome {
         state: TrackState::Initialised,
@@ -508,6 +513,7 @@ pub fn reinitialise(
     };
     map.trajectory.push(record);
     state.last = Some(record);
+    state.measured = Some(record);
     state.reference = Some(id);
     state.lost = false;
     Some(FrameOutcome {
@@ -634,6 +640,7 @@ pub fn commit_tracked(
     if let Some(record) = record {
         map.trajectory.push(record);
         state.last = Some(record);
+        state.measured = Some(record);
     }
     state.lost = false;
     FrameOutcome {
@@ -646,6 +653,66 @@ pub fn commit_tracked(
         inliers: tracked.inliers,
         keyframe,
     }
+}
+
+/// The mean frame-to-frame motion over the `frames` trajectory steps that end at the last
+/// measured frame: `(cam_from_world(m) · world_from_cam(m − n))^(1/n)` on SE(3) (through its
+/// logarithm), in the same convention as [`TrackerState::velocity`]. `None` when `frames` is
+/// 0 or the trajectory does not reach that far back.
+pub fn mean_velocity(map: &Map, state: &TrackerState, frames: u32) -> Option<Se3> {
+    let measured = state.measured?;
+    let n = frames as usize;
+    if n == 0 {
+        return None;
+    }
+    let end = map
+        .trajectory
+        .iter()
+        .rposition(|r| r.t_ns == measured.t_ns)?;
+    let start = end.checked_sub(n)?;
+    let cam_from_world = map.frame_pose(&map.trajectory[end])?.inverse();
+    let world_from_start = map.frame_pose(&map.trajectory[start])?;
+    let motion = (cam_from_world * world_from_start).log();
+    Some(Se3::exp(&(motion / n as f64)))
+}
+
+/// Moves the pose on to `t_ns` with the constant-velocity model without looking at the
+/// frame: for frames whose images carry no usable measurement (an event window flooded by a
+/// global lighting change, issue 8). The velocity is the mean over `velocity_frames` steps
+/// ([`mean_velocity`]; the last step's when the trajectory is shorter). The predicted
+/// `world_from_cam` is recorded in the trajectory relative to the reference keyframe and
+/// becomes the last frame, so the next frame's prediction extrapolates from it; the velocity,
+/// the reference keyframe and the map are unchanged (no matching, no keyframe, no new map
+/// segment). Returns `None` when there is nothing to predict from (not initialised yet, the
+/// last frame lost, or no reference keyframe).
+pub fn predict_only(
+    map: &mut Map,
+    state: &mut TrackerState,
+    t_ns: i64,
+    velocity_frames: u32,
+) -> Option<FrameOutcome> {
+    if state.lost {
+        return None;
+    }
+    let previous = last_pose(map, state)?;
+    let reference = state.reference.and_then(|r| map.keyframes.get(&r))?;
+    let velocity = mean_velocity(map, state, velocity_frames).unwrap_or(state.velocity);
+    // velocity = cam_from_world(k) · world_from_cam(k−1), so cam_from_world(k) = velocity ·
+    // cam_from_world(k−1).
+    let world_from_cam = (velocity * previous.inverse()).inverse();
+    let record = FrameRecord {
+        t_ns,
+        keyframe: reference.id,
+        kf_from_cam: reference.world_from_cam.inverse() * world_from_cam,
+    };
+    map.trajectory.push(record);
+    state.last = Some(record);
+    Some(FrameOutcome {
+        state: TrackState::Predicted,
+        world_from_cam,
+        inliers: 0,
+        keyframe: None,
+    })
 }
 
 /// What [`bridge_keyframe`] inserted.
@@ -670,8 +737,12 @@ pub struct Bridge {
 /// primary matches become its observations of the existing map (so it is covisible with the
 /// old keyframes and bundle adjustment keeps it tied to them) and the stereo matches of both
 /// images become new points. It becomes the reference keyframe, so the next frames, which
-/// look like `other`, track against its points. Returns `None` (nothing changed) when the
-/// last frame is not `primary`'s, was lost, or too few primary features match.
+/// look like `other`, track against its points. The primary frame may also be the last
+/// *measured* frame followed only by predicted ones ([`predict_only`], a flood between the
+/// two modes): the keyframe goes in at the primary frame's pose and the last (predicted)
+/// frame is re-expressed relative to it. Returns `None` (nothing changed) when neither the
+/// last frame nor the last measured one is `primary`'s, the last was lost, or too few
+/// primary features match.
 pub fn bridge_keyframe(
     map: &mut Map,
     state: &mut TrackerState,
@@ -679,10 +750,17 @@ pub fn bridge_keyframe(
     other: &StereoFrame,
     ctx: &TrackContext,
 ) -> Option<Bridge> {
-    if state.lost || state.last.as_ref().map(|r| r.t_ns) != Some(primary.t_ns) {
+    if state.lost {
         return None;
     }
-    let world_from_cam = last_pose(map, state)?;
+    let last = state.last?;
+    let source = if last.t_ns == primary.t_ns {
+        last
+    } else {
+        state.measured.filter(|m| m.t_ns == primary.t_ns)?
+    };
+    let world_from_cam = map.frame_pose(&source)?;
+    let last_world_from_cam = map.frame_pose(&last)?;
     let tracked = track_local_map(map, state, primary, ctx, world_from_cam.inverse())
         .filter(|t| t.inliers >= ctx.cfg.min_tracked as usize)?;
     let kind = primary.descriptors.kind();
@@ -720,7 +798,16 @@ pub fn bridge_keyframe(
         keyframe: id,
         kf_from_cam: Se3::identity(),
     };
-    state.last = Some(record);
+    state.measured = Some(record);
+    state.last = Some(if last.t_ns == primary.t_ns {
+        record
+    } else {
+        FrameRecord {
+            t_ns: last.t_ns,
+            keyframe: id,
+            kf_from_cam: world_from_cam.inverse() * last_world_from_cam,
+        }
+    });
     state.reference = Some(id);
     log::info!(
         "tracking: bridge keyframe {id} at t={} ns: {} map points re-matched, {other_points} \
