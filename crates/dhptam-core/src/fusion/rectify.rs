@@ -12,8 +12,7 @@ use nalgebra::Vector2;
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::events::e3ct::accumulate_mapped;
-use crate::events::{E3ctParams, E3ctWorkspace, EventSlice};
+use crate::events::EventSlice;
 use crate::geometry::rectify::{RectifiedStereo, Side};
 
 /// Marks a raw pixel without a rectified pixel in the table.
@@ -164,44 +163,6 @@ impl EventRectifier {
                 }
             });
         Ok(out)
-    }
-
-    /// The E3CT of a raw window in the rectified event camera (`rect_height × rect_width × C`
-    /// into `out`), without materialising the rectified events: the lookup happens inside
-    /// the E3CT's first pass. The same values as [`crate::events::e3ct_into`] of [`Self::apply`]'s output
-    /// (the same events, in the same order, at the same pixels), bit for bit.
-    ///
-    /// Raw events are validated against the raw image as in [`Self::apply`]; events leaving
-    /// the rectified view are dropped.
-    #[allow(clippy::too_many_arguments)]
-    pub fn e3ct_into(
-        &self,
-        events: &EventSlice<'_>,
-        t_start_ns: i64,
-        t_end_ns: i64,
-        params: &E3ctParams,
-        workspace: &mut E3ctWorkspace,
-        out: &mut [f32],
-    ) -> Result<()> {
-        params.check()?;
-        let width = self.width as usize;
-        let table = &self.table;
-        accumulate_mapped(
-            events,
-            (self.width, self.height),
-            self.rect_width,
-            self.rect_height,
-            t_start_ns,
-            t_end_ns,
-            params,
-            workspace,
-            out,
-            |u, v| {
-                // Validated: u < width and v < height, so the entry exists.
-                let entry = *table.get(usize::from(v) * width + usize::from(u))?;
-                (entry != OUTSIDE).then_some(((entry & 0xFFFF) as u16, (entry >> 16) as u16))
-            },
-        )
     }
 }
 
