@@ -318,16 +318,11 @@ impl WarpMap {
         let n = self.dst_w * self.dst_h * channels;
         let mut dst: Vec<f32> = Vec::with_capacity(n);
         let out = &mut dst.spare_capacity_mut()[..n];
-        // Constant channel counts get their own loops (the common E3CT has 3 channels).
-        match (channels, &inv) {
-            (1, None) => self.gather(src, 1, out, |s, _| s),
-            (2, None) => self.gather(src, 2, out, |s, _| s),
-            (3, None) => self.gather(src, 3, out, |s, _| s),
-            (c, None) => self.gather(src, c, out, |s, _| s),
-            (1, Some(k)) => self.gather(src, 1, out, |s, i| (s * k[i]).clamp(0.0, 1.0)),
-            (2, Some(k)) => self.gather(src, 2, out, |s, i| (s * k[i]).clamp(0.0, 1.0)),
-            (3, Some(k)) => self.gather(src, 3, out, |s, i| (s * k[i]).clamp(0.0, 1.0)),
-            (c, Some(k)) => self.gather(src, c, out, |s, i| (s * k[i]).clamp(0.0, 1.0)),
+        // Constant channel counts get their own unrolled loops (the E3CT has 3 or 4 channels);
+        // `C = 0` is the loop for any count.
+        match inv.as_deref() {
+            None => self.gather_any(src, channels, out, |s, _| s),
+            Some(k) => self.gather_any(src, channels, out, |s, i| (s * k[i]).clamp(0.0, 1.0)),
         }
         // SAFETY: `gather` wrote all `n` values of the spare capacity: each piece writes every
         // value of every one of its pixels (a value, or 0 where nothing is sampled).
@@ -335,15 +330,33 @@ impl WarpMap {
         Ok(dst)
     }
 
-    /// The gather: every frame pixel's `c` values, each tap's value entering as `value(s, k)`.
-    #[inline(always)]
-    fn gather(
+    /// [`Self::gather`] with the channel count a constant where it is 1 to 4.
+    fn gather_any(
         &self,
         src: &[f32],
         c: usize,
         out: &mut [MaybeUninit<f32>],
         value: impl Fn(f32, usize) -> f32 + Sync,
     ) {
+        match c {
+            1 => self.gather::<1>(src, c, out, value),
+            2 => self.gather::<2>(src, c, out, value),
+            3 => self.gather::<3>(src, c, out, value),
+            4 => self.gather::<4>(src, c, out, value),
+            _ => self.gather::<0>(src, c, out, value),
+        }
+    }
+
+    /// The gather: every frame pixel's `c` values (`c = C` when `C > 0`), each tap's value
+    /// entering as `value(s, k)`.
+    fn gather<const C: usize>(
+        &self,
+        src: &[f32],
+        c: usize,
+        out: &mut [MaybeUninit<f32>],
+        value: impl Fn(f32, usize) -> f32 + Sync,
+    ) {
+        let c = if C > 0 { C } else { c };
         let (w, h) = (self.src_w, self.src_h);
         out.par_chunks_mut(APPLY_PIECE * c)
             .zip(self.entries.par_chunks(APPLY_PIECE))
@@ -351,28 +364,31 @@ impl WarpMap {
             .for_each(|(piece, (out, entries))| {
                 for (o, e) in out.chunks_exact_mut(c).zip(entries) {
                     if e.base == NO_SOURCE {
-                        o.iter_mut().for_each(|v| {
-                            v.write(0.0);
-                        });
+                        for o in o.iter_mut() {
+                            o.write(0.0);
+                        }
                         continue;
                     }
                     let (ax, ay) = (e.ax, e.ay);
-                    let taps = [
-                        (0, (1.0 - ax) * (1.0 - ay)),
-                        (c, ax * (1.0 - ay)),
-                        (w * c, (1.0 - ax) * ay),
-                        (w * c + c, ax * ay),
+                    let weights = [
+                        (1.0 - ax) * (1.0 - ay),
+                        ax * (1.0 - ay),
+                        (1.0 - ax) * ay,
+                        ax * ay,
                     ];
-                    let block = &src[e.base as usize * c..e.base as usize * c + (w + 2) * c];
-                    for (k, o) in o.iter_mut().enumerate() {
+                    let at = e.base as usize * c;
+                    let rows = [&src[at..at + 2 * c], &src[at + w * c..at + (w + 2) * c]];
+                    let taps = [&rows[0][..c], &rows[0][c..], &rows[1][..c], &rows[1][c..]];
+                    for k in 0..c {
+                        // Per channel the taps in the order of the tap-by-tap sample, zero
+                        // weights skipped as it skips them.
                         let mut acc = 0.0f32;
-                        for &(at, weight) in &taps {
-                            // Zero weights are skipped as the tap-by-tap sample skips them.
+                        for (tap, &weight) in taps.iter().zip(&weights) {
                             if weight != 0.0 {
-                                acc += weight * value(block[at + k], k);
+                                acc += weight * value(tap[k], k);
                             }
                         }
-                        o.write(acc);
+                        o[k].write(acc);
                     }
                 }
                 // The pixels of this piece whose taps straddle the border.
