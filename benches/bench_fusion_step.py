@@ -17,7 +17,7 @@ call for these sizes and reused (the first call's time is printed apart).
 extension built from main before this work), loaded side by side in the same process, the
 way that build's front-end ran it (scales, normalised copies, then the warp); the warped
 tensors and the fused images of both are checked equal bit for bit first, and the table gets
-the previous build's columns and the ratios from the same run.
+the previous build's columns and the ratios from the same run (the two steps alternate).
 
     python benches/bench_fusion_step.py [--repeats 7] [--previous OLD/_core.abi3.so]
     RAYON_NUM_THREADS=1 python benches/bench_fusion_step.py
@@ -105,33 +105,39 @@ def main() -> None:
 
         return run
 
-    def timed(run: Callable[[], tuple[list[Mark], list[np.ndarray]]]) -> dict[str, tuple[float, float]]:
-        """Best wall and best CPU time [ms] of each stage over the repeats."""
-        wall: dict[str, list[float]] = {k: [] for k in NAMES}
-        cpu: dict[str, list[float]] = {k: [] for k in NAMES}
+    def timed(
+        runs: list[Callable[[], tuple[list[Mark], list[np.ndarray]]]],
+    ) -> list[dict[str, tuple[float, float]]]:
+        """Best wall and best CPU time [ms] of each stage of each run over the repeats; the runs
+        alternate, so that a change of the machine's load reaches all of them alike."""
+        wall: list[dict[str, list[float]]] = [{k: [] for k in NAMES} for _ in runs]
+        cpu: list[dict[str, list[float]]] = [{k: [] for k in NAMES} for _ in runs]
         for _ in range(args.repeats):
-            marks, _ = run()
-            pairs = [(marks[i], marks[i + 1]) for i in range(5)] + [(marks[0], marks[5])]
-            for key, (a, b) in zip(NAMES, pairs, strict=True):
-                wall[key].append((b[0] - a[0]) * 1e3)
-                cpu[key].append((b[1] - a[1]) * 1e3)
-        return {key: (min(wall[key]), min(cpu[key])) for key in NAMES}
+            for w, c, run in zip(wall, cpu, runs, strict=True):
+                marks, _ = run()
+                pairs = [(marks[i], marks[i + 1]) for i in range(5)] + [(marks[0], marks[5])]
+                for key, (a, b) in zip(NAMES, pairs, strict=True):
+                    w[key].append((b[0] - a[0]) * 1e3)
+                    c[key].append((b[1] - a[1]) * 1e3)
+        return [{key: (min(w[key]), min(c[key])) for key in NAMES} for w, c in zip(wall, cpu, strict=True)]
 
     ours = step(_core, True)
     t_first = time.perf_counter()
     marks, mine = ours()
     first_warp = (marks[4][0] - marks[3][0]) * 1e3
     t_first = time.perf_counter() - t_first
-    columns = [("dhptam", timed(ours))]
     rectifiers = [_core.EventRectifier(rect, side) for side in ("left", "right")]
     kept = [len(r.apply(*s, 0, SPAN_NS)[0]) for r, s in zip(rectifiers, sides, strict=True)]
+    runs, names = [ours], ["dhptam"]
     if args.previous:
         previous = load_previous(args.previous)
         theirs = step(previous, False)
         _, want = theirs()
         for a, b in zip(mine, want, strict=True):
             np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))
-        columns.append(("previous", timed(theirs)))
+        runs.append(theirs)
+        names.append("previous")
+    columns = list(zip(names, timed(runs), strict=True))
     print(
         f"stereo fusion step, events 2 × 1 M at {W}×{H} (kept after rectification: {kept[0]} + {kept[1]}, "
         f"rectified {rw}×{rh}), frames {FRAME}×{FRAME}, rayon threads {_core.thread_count()}, load average "
