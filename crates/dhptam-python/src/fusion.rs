@@ -184,11 +184,7 @@ pub fn _warp_to_frame<'py>(
     }
     let out = py
         .detach_guarded("fusion::_warp_to_frame", || {
-            cached_map(&warp, [ax, ay], [sw, sh, width, height])?.apply(
-                src,
-                c,
-                scales.as_deref(),
-            )
+            cached_map(&warp, [ax, ay], [sw, sh, width, height])?.apply(src, c, scales.as_deref())
         })?
         .py()?;
     let out = Array3::from_shape_vec((height, width, c), out)
