@@ -24,7 +24,6 @@ __all__ = [
     "_e3ct_apply_scales",
     "_e3ct_scales",
     "_fuse",
-    "_fuse_frame",
     "_log_from_rust",
     "_r2d2_heads",
     "_reset_log_cache",
@@ -302,18 +301,8 @@ def _warp_to_frame(
     width: int,
     height: int,
     pixels: _ArrayLike | None = None,
+    scales: _ArrayLike | None = None,
 ) -> tuple[_F32, _FloatArray | None]: ...
-def _fuse_frame(
-    frame: npt.NDArray[np.uint8],
-    e3ct: _F32,
-    scales: _ArrayLike,
-    k_event: _ArrayLike,
-    k_frame: _ArrayLike,
-    frame_from_event: SE3,
-    depth_m: float,
-    align_px: _ArrayLike,
-    beta: float,
-) -> npt.NDArray[np.uint8]: ...
 def _solve_bal_file(
     path: str | os.PathLike[str],
     *,
@@ -362,19 +351,6 @@ class EventRectifier:
         self, x: _U16, y: _U16, t_ns: _I64, p: _I8, t_start_ns: int, t_end_ns: int
     ) -> tuple[_U16, _U16, _I64, _I8]: ...
     def lookup(self, pixels: npt.NDArray[np.int64]) -> _FloatArray: ...
-    def e3ct(
-        self,
-        x: _U16,
-        y: _U16,
-        t_ns: _I64,
-        p: _I8,
-        t_start_ns: int,
-        t_end_ns: int,
-        alpha: float = 0.5,
-        eta_ms: float = 30.0,
-        channels: int = 3,
-        polarity: str = "both",
-    ) -> _F32: ...
 
 def solve_pnp_ransac(
     points_world: _ArrayLike,

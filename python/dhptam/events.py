@@ -210,8 +210,25 @@ def normalise(
     if not tensors:
         raise InputError("normalise needs at least one tensor", field="tensors")
     arrays = [np.ascontiguousarray(t, dtype=np.float32) for t in tensors]
-    used = _core._e3ct_scales(arrays, float(percentile)) if scales is None else [float(s) for s in scales]
+    used = shared_scales(*arrays, percentile=percentile) if scales is None else [float(s) for s in scales]
     return [_core._e3ct_apply_scales(a, used) for a in arrays], np.asarray(used, np.float32)
+
+
+def shared_scales(*tensors: npt.NDArray[np.float32], percentile: float = 99.0) -> npt.NDArray[np.float32]:
+    """The per-channel scales :func:`normalise` would use, without the normalised copies.
+
+    For the fusion step, which normalises inside the warp
+    (``dhptam.fusion.warp_to_frame(raw, ..., scales=shared_scales(left, right))``).
+
+    >>> import numpy as np
+    >>> a = np.zeros((1, 2, 1), np.float32); a[0, 0, 0] = 4.0
+    >>> shared_scales(a, percentile=100.0).tolist()
+    [4.0]
+    """
+    if not tensors:
+        raise InputError("shared_scales needs at least one tensor", field="tensors")
+    arrays = [np.ascontiguousarray(t, dtype=np.float32) for t in tensors]
+    return np.asarray(_core._e3ct_scales(arrays, float(percentile)), np.float32)
 
 
 def stereo_e3ct(
@@ -339,6 +356,7 @@ __all__ = [
     "fusion_windows",
     "normalise",
     "postprocess",
+    "shared_scales",
     "stereo_e3ct",
     "time_surface",
     "voxel_grid",

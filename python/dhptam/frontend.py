@@ -51,7 +51,7 @@ from . import _core
 from ._prefetch import prefetched
 from .datasets import EventWindow, Sequence
 from .errors import InputError
-from .events import e3ct, normalise
+from .events import e3ct, shared_scales
 from .fusion import choose_beta, fuse, warp_to_frame
 from .geometry import SE3, RectifiedStereo, StereoRig
 
@@ -471,13 +471,14 @@ class Frontend:
                     polarity=cfg["polarity"],
                 )
             )
-        normalised, scales = normalise(*tensors, percentile=cfg["normalise_percentile"])
+        # Normalised inside the warp (tap by tap, the same values as normalise() then warp).
+        scales = shared_scales(*tensors, percentile=cfg["normalise_percentile"])
         k_event = self.event_rect.K
         k_frame = self.frame_rect.K
         ke = [k_event[0, 0], k_event[1, 1], k_event[0, 2], k_event[1, 2]]
         kf = [k_frame[0, 0], k_frame[1, 1], k_frame[0, 2], k_frame[1, 2]]
         out = {}
-        for side, tensor in zip(("left", "right"), normalised, strict=True):
+        for side, tensor in zip(("left", "right"), tensors, strict=True):
             warped, _ = warp_to_frame(
                 tensor,
                 ke,
@@ -487,6 +488,7 @@ class Frontend:
                 height=int(self.frame_rect.height),
                 depth_m=self.plane_depth_m,
                 align_px=self.align_px,
+                scales=scales,
             )
             out[side] = warped
         stats = E3ctStats(

@@ -69,13 +69,17 @@ def warp_to_frame(
     depth_m: float = 0.0,
     align_px: npt.ArrayLike = (0.0, 0.0),
     pixels: npt.ArrayLike | None = None,
+    scales: npt.ArrayLike | None = None,
 ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float64] | None]:
     """Resamples a rectified event image (H, W, C) into a ``height × width`` frame image.
 
     ``k_event`` and ``k_frame`` are ``[fx, fy, cx, cy]`` of the rectified cameras,
     ``frame_from_event`` maps rectified event-camera points to rectified frame-camera points.
     When ``pixels`` (N, 2) of the event image are given, their frame pixels are returned too
-    (NaN behind the camera).
+    (NaN behind the camera). With ``scales`` (one per channel, e.g. from
+    :func:`dhptam.events.shared_scales`) a raw E3CT is normalised inside the warp, tap by tap:
+    the same values as warping ``normalise(image, scales=scales)``, without that copy. The
+    warp's inverse map is computed once per (warp, sizes) and reused by later calls.
     """
     return _core._warp_to_frame(
         np.ascontiguousarray(image, dtype=np.float32),
@@ -87,6 +91,7 @@ def warp_to_frame(
         int(width),
         int(height),
         pixels,
+        None if scales is None else [float(s) for s in np.asarray(scales, np.float32).ravel()],
     )
 
 

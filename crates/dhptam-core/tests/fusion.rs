@@ -2,7 +2,7 @@
 //! depth, and the online β / fusion.
 
 use dhptam_core::config::{FusionConfig, RectificationConfig};
-use dhptam_core::events::{channel_scales, e3ct, scaled, E3ctParams, E3ctWorkspace, EventSlice};
+use dhptam_core::events::{channel_scales, e3ct, scaled, E3ctParams, EventSlice};
 use dhptam_core::fusion::{
     choose_beta, fuse, fuse_e3ct, intensity_from_e3ct, Bias, Depth, EventFrameWarp, EventRectifier,
     FusionMode,
@@ -430,9 +430,9 @@ fn direct_e3ct(ev: &EventSlice<'_>, w: usize, h: usize, span_ns: i64) -> Vec<f32
 }
 
 #[test]
-fn rectified_e3ct_in_one_pass_is_the_e3ct_of_the_rectified_events_bit_for_bit() {
+fn e3ct_of_rectified_events_is_the_direct_accumulation_bit_for_bit() {
     // Raw µs-stamped events over 50 ms, some leaving the rectified view; several segments
-    // (more than 65,536 distinct stamps with ns stamps) and thread counts.
+    // (more than 65,536 distinct stamps with ns stamps).
     let rig = rig();
     let rect = rectified(&rig.event, &rig.event_from_rig);
     let lut = EventRectifier::new(&rect, Side::Left);
@@ -458,40 +458,12 @@ fn rectified_e3ct_in_one_pass_is_the_e3ct_of_the_rectified_events_bit_for_bit() 
             .iter()
             .zip(&want)
             .all(|(a, b)| a.to_bits() == b.to_bits()));
-        for threads in [1, 2, 3] {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            let mut out = vec![f32::NAN; want.len()];
-            let mut workspace = E3ctWorkspace::default();
-            // Twice with the same workspace: reused scratch memory gives the same bits.
-            for _ in 0..2 {
-                pool.install(|| lut.e3ct_into(&events, 0, span, &params, &mut workspace, &mut out))
-                    .unwrap();
-                let differ = out
-                    .iter()
-                    .zip(&want)
-                    .filter(|(a, b)| a.to_bits() != b.to_bits())
-                    .count();
-                assert_eq!(differ, 0, "stamps {stamp_ns} ns, {threads} threads");
-            }
-        }
         assert!(want.iter().map(|&v| f64::from(v)).sum::<f64>() > 1000.0);
     }
-    // Raw pixels outside the raw image are errors, as in `apply`.
-    let bad = ([1280u16], [0u16], [0i64], [1i8]);
-    let events = EventSlice::new(&bad.0, &bad.1, &bad.2, &bad.3).unwrap();
-    let mut out = vec![0f32; (rect.width * rect.height * 3) as usize];
-    let params = E3ctParams::default();
-    let mut workspace = E3ctWorkspace::default();
-    assert!(lut
-        .e3ct_into(&events, 0, 10, &params, &mut workspace, &mut out)
-        .is_err());
 }
 
 #[test]
-fn one_pass_frame_fusion_is_normalise_warp_and_blend_bit_for_bit() {
+fn warp_map_with_scales_is_normalise_then_warp_bit_for_bit() {
     let k_event = dhptam_core::geometry::Pinhole {
         fx: 500.0,
         fy: 500.0,
@@ -501,8 +473,8 @@ fn one_pass_frame_fusion_is_normalise_warp_and_blend_bit_for_bit() {
     let k_frame = dhptam_core::geometry::Pinhole {
         fx: 560.0,
         fy: 560.0,
-        cx: 50.0,
-        cy: 40.0,
+        cx: 90.0,
+        cy: 70.0,
     };
     let frame_from_event = Se3::new(
         So3::exp(&Vector3::new(0.01, -0.02, 0.005)),
@@ -521,35 +493,95 @@ fn one_pass_frame_fusion_is_normalise_warp_and_blend_bit_for_bit() {
         })
         .collect();
     let scales = channel_scales(&[&src], c, 99.0).unwrap();
-    let (fw, fh) = (100usize, 80usize);
-    let frame: Vec<u8> = (0..fw * fh).map(|_| rng.random_range(0..=255u8)).collect();
+    // The frame sees past the event image: frame pixels outside it and on its border occur.
+    let (fw, fh) = (180usize, 140usize);
     for (depth, align) in [
         (Depth::Plane { depth_m: 1.5 }, Vector2::new(0.7, -1.2)),
         (Depth::Infinity, Vector2::zeros()),
     ] {
         let warp = EventFrameWarp::new(k_event, k_frame, frame_from_event, depth, align).unwrap();
         let normalised = scaled(&src, &scales).unwrap();
-        let warped = warp.warp_image(&normalised, sw, sh, c, fw, fh).unwrap();
-        for beta in [0.0, 0.3, 0.77, 1.0] {
-            let want = fuse_e3ct(&frame, &warped, c, beta).unwrap();
-            let got = warp
-                .fuse_frame(&frame, fw, fh, &src, sw, sh, &scales, beta)
-                .unwrap();
-            assert_eq!(got, want, "beta {beta}");
+        let want = stepped_warp(&warp, align, &normalised, sw, sh, c, fw, fh);
+        let map = warp.map(sw, sh, fw, fh).unwrap();
+        assert_eq!((map.src_size(), map.dst_size()), ((sw, sh), (fw, fh)));
+        let fused = map.apply(&src, c, Some(&scales)).unwrap();
+        let staged = warp.warp_image(&normalised, sw, sh, c, fw, fh).unwrap();
+        for got in [&fused, &staged] {
+            let differ = got
+                .iter()
+                .zip(&want)
+                .filter(|(a, b)| a.to_bits() != b.to_bits())
+                .count();
+            assert_eq!(differ, 0, "{depth:?}");
         }
-        // Events actually show through at β = 1 (the test is not comparing two blank images).
-        let events_only = warp
-            .fuse_frame(&frame, fw, fh, &src, sw, sh, &scales, 1.0)
-            .unwrap();
-        assert!(events_only.iter().filter(|&&v| v > 0).count() > fw * fh / 4);
-        assert!(warp
-            .fuse_frame(&frame, fw, fh, &src, sw, sh, &[1.0, 0.0, 1.0], 0.5)
-            .is_err());
-        assert!(warp
-            .fuse_frame(&frame[1..], fw, fh, &src, sw, sh, &scales, 0.5)
-            .is_err());
-        assert!(warp
-            .fuse_frame(&frame, fw, fh, &src, sw, sh, &scales, 1.5)
-            .is_err());
+        // Without scales the raw values are warped, equal to the reference too.
+        let raw = map.apply(&src, c, None).unwrap();
+        let raw_want = stepped_warp(&warp, align, &src, sw, sh, c, fw, fh);
+        assert!(raw
+            .iter()
+            .zip(&raw_want)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        // Not two blank images: many values are non-zero, some raw ones above the scales.
+        assert!(fused.iter().filter(|&&v| v > 0.0).count() > fw * fh / 2);
+        assert!(raw.iter().any(|&v| v > 1.0));
+        let outside = (0..fw * fh)
+            .filter(|&i| {
+                let q = warp.unwarp_pixel(&Vector2::new((i % fw) as f64, (i / fw) as f64));
+                q.is_some_and(|q| q.x < -1.0 || q.x > sw as f64 || q.y < -1.0 || q.y > sh as f64)
+            })
+            .inspect(|&i| assert_eq!(&fused[i * c..(i + 1) * c], &[0.0; 3]))
+            .count();
+        assert!(outside > fw * fh / 10, "{outside}");
+        assert!(map.apply(&src, c, Some(&[1.0, 0.0, 1.0])).is_err());
+        assert!(map.apply(&src, c, Some(&scales[..2])).is_err());
+        assert!(map.apply(&src[1..], c, None).is_err());
     }
+}
+
+/// The warp as it was computed before the precomputed map: the source point stepped along
+/// each frame row, bilinear taps tested one by one (pixel centres at integers, 0 outside):
+/// the reference the map must equal bit for bit.
+#[allow(clippy::too_many_arguments)]
+fn stepped_warp(
+    warp: &EventFrameWarp,
+    align: Vector2<f64>,
+    src: &[f32],
+    w: usize,
+    h: usize,
+    c: usize,
+    fw: usize,
+    fh: usize,
+) -> Vec<f32> {
+    let hinv = warp.homography().try_inverse().unwrap();
+    let step = hinv.column(0).into_owned();
+    let mut out = vec![0f32; fw * fh * c];
+    for v in 0..fh {
+        let start = hinv * Vector3::new(-align.x, v as f64 - align.y, 1.0);
+        for u in 0..fw {
+            let p = start + step * u as f64;
+            let (x, y) = (p.x / p.z, p.y / p.z);
+            if !(p.z > 0.0 && x > -1.0 && y > -1.0 && x < w as f64 && y < h as f64) {
+                continue;
+            }
+            let (xf, yf) = (x.floor(), y.floor());
+            let (ax, ay) = ((x - xf) as f32, (y - yf) as f32);
+            let taps = [
+                (0, 0, (1.0 - ax) * (1.0 - ay)),
+                (1, 0, ax * (1.0 - ay)),
+                (0, 1, (1.0 - ax) * ay),
+                (1, 1, ax * ay),
+            ];
+            for (dx, dy, weight) in taps {
+                let (xi, yi) = (xf as isize + dx, yf as isize + dy);
+                if xi < 0 || yi < 0 || xi as usize >= w || yi as usize >= h || weight == 0.0 {
+                    continue;
+                }
+                for k in 0..c {
+                    out[(v * fw + u) * c + k] +=
+                        weight * src[(yi as usize * w + xi as usize) * c + k];
+                }
+            }
+        }
+    }
+    out
 }

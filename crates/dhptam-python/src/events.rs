@@ -108,7 +108,7 @@ pub fn _e3ct<'py>(
 /// Runs `f` with a workspace from [`WORKSPACES`] (a fresh one when the pool is empty) and
 /// returns it to the pool: fresh scratch pages for every window cost as much as the pass
 /// that fills them.
-pub(crate) fn with_workspace<R>(f: impl FnOnce(&mut E3ctWorkspace) -> R) -> R {
+fn with_workspace<R>(f: impl FnOnce(&mut E3ctWorkspace) -> R) -> R {
     let mut workspace = WORKSPACES
         .lock()
         .ok()
@@ -121,21 +121,6 @@ pub(crate) fn with_workspace<R>(f: impl FnOnce(&mut E3ctWorkspace) -> R) -> R {
         }
     }
     result
-}
-
-/// `E3ctParams` from the Python arguments.
-pub(crate) fn e3ct_params(
-    alpha: f64,
-    eta_ms: f64,
-    channels: usize,
-    polarity: &str,
-) -> PyResult<E3ctParams> {
-    Ok(E3ctParams {
-        alpha,
-        eta_ms,
-        channels,
-        polarity: parse_polarity(polarity)?,
-    })
 }
 
 /// E3CT scratch memory kept between calls, one per concurrent caller (up to

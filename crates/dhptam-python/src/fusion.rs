@@ -2,7 +2,9 @@
 
 use dhptam_core::config::FusionConfig;
 use dhptam_core::events::EventSlice;
-use dhptam_core::fusion::{self, Depth, EventFrameWarp, EventRectifier};
+use std::sync::{Arc, Mutex};
+
+use dhptam_core::fusion::{self, Depth, EventFrameWarp, EventRectifier, WarpMap};
 use dhptam_core::geometry::Pinhole;
 use nalgebra::Vector2;
 use numpy::ndarray::{Array2, Array3};
@@ -16,7 +18,7 @@ use crate::arrays;
 use crate::config::PyConfig;
 use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
-use crate::events::{e3ct_params, exact, with_workspace};
+use crate::events::exact;
 use crate::geometry::PySe3;
 use crate::stereo::{parse_side, PyRectifiedStereo};
 
@@ -88,9 +90,57 @@ fn pinhole(obj: &Bound<'_, PyAny>, name: &str) -> PyResult<Pinhole> {
     Ok(Pinhole { fx, fy, cx, cy })
 }
 
-/// Warps a rectified event image (H, W, C) into the rectified frame camera.
+/// Warp maps kept for reuse, most recently used first (the front-end warps every frame of a
+/// sequence with the same two warps).
+static WARP_MAPS: Mutex<Vec<(WarpKey, Arc<WarpMap>)>> = Mutex::new(Vec::new());
+/// How many warp maps [`WARP_MAPS`] keeps (12 bytes per frame pixel each).
+const WARP_MAPS_KEPT: usize = 4;
+
+/// What a warp map depends on: the bits of the homography and of δP_align, and the sizes.
+#[derive(Clone, Copy, PartialEq, Eq)]
+struct WarpKey {
+    homography: [u64; 9],
+    align: [u64; 2],
+    sizes: [usize; 4],
+}
+
+/// The warp map of `warp` for these sizes, from the cache or built (with the GIL released by
+/// the caller) and cached.
+fn cached_map(
+    warp: &EventFrameWarp,
+    align: [f64; 2],
+    sizes: [usize; 4],
+) -> dhptam_core::Result<Arc<WarpMap>> {
+    let key = WarpKey {
+        homography: std::array::from_fn(|i| warp.homography().as_slice()[i].to_bits()),
+        align: align.map(f64::to_bits),
+        sizes,
+    };
+    // A poisoned lock only means another thread panicked while holding it; the list is valid.
+    let lock = || WARP_MAPS.lock().unwrap_or_else(|e| e.into_inner());
+    {
+        let mut maps = lock();
+        if let Some(i) = maps.iter().position(|(k, _)| *k == key) {
+            let entry = maps.remove(i);
+            let map = Arc::clone(&entry.1);
+            maps.insert(0, entry);
+            return Ok(map);
+        }
+    }
+    let [sw, sh, w, h] = sizes;
+    let map = Arc::new(warp.map(sw, sh, w, h)?);
+    let mut maps = lock();
+    maps.insert(0, (key, Arc::clone(&map)));
+    maps.truncate(WARP_MAPS_KEPT);
+    Ok(map)
+}
+
+/// Warps a rectified event image (H, W, C) into the rectified frame camera; with `scales`
+/// (one per channel) each bilinear tap is normalised first (`_e3ct_apply_scales`), the same
+/// values as warping the normalised image. The inverse map of the warp is computed once per
+/// (warp, sizes) and reused by later calls.
 #[pyfunction]
-#[pyo3(signature = (image, k_event, k_frame, frame_from_event, depth_m, align_px, width, height, pixels=None))]
+#[pyo3(signature = (image, k_event, k_frame, frame_from_event, depth_m, align_px, width, height, pixels=None, scales=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn _warp_to_frame<'py>(
     py: Python<'py>,
@@ -103,6 +153,7 @@ pub fn _warp_to_frame<'py>(
     width: usize,
     height: usize,
     pixels: Option<&Bound<'py, PyAny>>,
+    scales: Option<Vec<f32>>,
 ) -> PyResult<(Bound<'py, PyArray3<f32>>, Option<Bound<'py, PyArray2<f64>>>)> {
     let depth = if depth_m == 0.0 {
         Depth::Infinity
@@ -122,9 +173,18 @@ pub fn _warp_to_frame<'py>(
     let src = image
         .as_slice()
         .map_err(|_| input_error("image", "a C-contiguous float32 array", "a strided view"))?;
+    if let Some(scales) = &scales {
+        if scales.len() != c {
+            return Err(input_error(
+                "scales",
+                &format!("{c} scales, one per channel of image"),
+                format!("{} scales", scales.len()),
+            ));
+        }
+    }
     let out = py
         .detach_guarded("fusion::_warp_to_frame", || {
-            warp.warp_image(src, sw, sh, c, width, height)
+            cached_map(&warp, [ax, ay], [sw, sh, width, height])?.apply(src, c, scales.as_deref())
         })?
         .py()?;
     let out = Array3::from_shape_vec((height, width, c), out)
@@ -146,64 +206,6 @@ pub fn _warp_to_frame<'py>(
         }
     };
     Ok((out, warped))
-}
-
-/// Normalises a raw rectified E3CT (H', W', C) with `scales`, warps it into the rectified
-/// frame camera and blends it with the 8-bit `frame` (H, W) with weight `beta`, in one pass
-/// over the frame's pixels: the same uint8 image as `_fuse(frame, _warp_to_frame(
-/// _e3ct_apply_scales(e3ct, scales), ...), beta)`.
-#[pyfunction]
-#[pyo3(signature = (frame, e3ct, scales, k_event, k_frame, frame_from_event, depth_m, align_px, beta))]
-#[allow(clippy::too_many_arguments)]
-pub fn _fuse_frame<'py>(
-    py: Python<'py>,
-    frame: PyReadonlyArray2<'py, u8>,
-    e3ct: PyReadonlyArray3<'py, f32>,
-    scales: Vec<f32>,
-    k_event: &Bound<'py, PyAny>,
-    k_frame: &Bound<'py, PyAny>,
-    frame_from_event: &PySe3,
-    depth_m: f64,
-    align_px: &Bound<'py, PyAny>,
-    beta: f64,
-) -> PyResult<Bound<'py, PyArray2<u8>>> {
-    let depth = if depth_m == 0.0 {
-        Depth::Infinity
-    } else {
-        Depth::Plane { depth_m }
-    };
-    let [ax, ay] = arrays::vector::<2>(align_px, "align_px")?;
-    let warp = EventFrameWarp::new(
-        pinhole(k_event, "k_event")?,
-        pinhole(k_frame, "k_frame")?,
-        frame_from_event.inner,
-        depth,
-        Vector2::new(ax, ay),
-    )
-    .py()?;
-    if e3ct.shape()[2] != scales.len() {
-        return Err(input_error(
-            "scales",
-            &format!("{} scales, one per channel of e3ct", e3ct.shape()[2]),
-            format!("{} scales", scales.len()),
-        ));
-    }
-    let (sh, sw) = (e3ct.shape()[0], e3ct.shape()[1]);
-    let (h, w) = (frame.shape()[0], frame.shape()[1]);
-    let src = e3ct
-        .as_slice()
-        .map_err(|_| input_error("e3ct", "a C-contiguous float32 array", "a strided view"))?;
-    let pixels = frame
-        .as_slice()
-        .map_err(|_| input_error("frame", "a C-contiguous uint8 image", "a strided view"))?;
-    let fused = py
-        .detach_guarded("fusion::_fuse_frame", || {
-            warp.fuse_frame(pixels, w, h, src, sw, sh, &scales, beta)
-        })?
-        .py()?;
-    Array2::from_shape_vec((h, w), fused)
-        .map(|a| a.into_pyarray(py))
-        .map_err(|e| input_error("frame", "a consistent size", e))
 }
 
 /// Rectified event arrays `(x uint16, y uint16, t_ns int64, p int8)`.
@@ -278,53 +280,6 @@ impl PyEventRectifier {
             out.t_ns.into_pyarray(py),
             out.p.into_pyarray(py),
         ))
-    }
-
-    /// E3CT (rect_height, rect_width, C) float32, not normalised, of a raw window, with the
-    /// rectification lookup done inside the E3CT's first pass: the same values as `e3ct` of
-    /// [`apply`]'s output, without the rectified arrays. Same input rules as [`apply`].
-    #[pyo3(signature = (x, y, t_ns, p, t_start_ns, t_end_ns, alpha=0.5, eta_ms=30.0, channels=3, polarity="both"))]
-    #[allow(clippy::too_many_arguments)]
-    fn e3ct<'py>(
-        &self,
-        py: Python<'py>,
-        x: PyReadonlyArray1<'py, u16>,
-        y: PyReadonlyArray1<'py, u16>,
-        t_ns: PyReadonlyArray1<'py, i64>,
-        p: PyReadonlyArray1<'py, i8>,
-        t_start_ns: i64,
-        t_end_ns: i64,
-        alpha: f64,
-        eta_ms: f64,
-        channels: usize,
-        polarity: &str,
-    ) -> PyResult<Bound<'py, PyArray3<f32>>> {
-        let params = e3ct_params(alpha, eta_ms, channels, polarity)?;
-        let slice = EventSlice::new(
-            exact(&x, "x")?,
-            exact(&y, "y")?,
-            exact(&t_ns, "t_ns")?,
-            exact(&p, "p")?,
-        )
-        .py()?;
-        let (w, h) = (
-            self.inner.rect_width as usize,
-            self.inner.rect_height as usize,
-        );
-        let c = params.output_channels();
-        let out = py
-            .detach_guarded("fusion::e3ct", || {
-                let mut out = vec![0f32; w * h * c];
-                with_workspace(|workspace| {
-                    self.inner
-                        .e3ct_into(&slice, t_start_ns, t_end_ns, &params, workspace, &mut out)
-                })
-                .map(|()| out)
-            })?
-            .py()?;
-        Array3::from_shape_vec((h, w, c), out)
-            .map(|a| a.into_pyarray(py))
-            .map_err(|e| input_error("rect_size", "a consistent image size", e))
     }
 
     /// Rectified pixels `(N, 2)` (float64, NaN outside the rectified view) of raw integer

@@ -302,30 +302,19 @@ pub fn e3ct_into(
     out: &mut [f32],
 ) -> Result<()> {
     params.check()?;
-    accumulate_mapped(
-        events,
-        (width, height),
-        width,
-        height,
-        t_start_ns,
-        t_end_ns,
-        params,
-        workspace,
-        out,
-        |x, y| Some((x, y)),
+    accumulate(
+        events, width, height, t_start_ns, t_end_ns, params, workspace, out,
     )
 }
 
-/// The E3CT of `events`, each moved first by `map` (the identity, or a rectification table;
-/// `None` drops the event) to a pixel of the `width × height` output.
+/// The two-pass accumulation of [`e3ct_into`] (its parameters checked).
 ///
-/// The events are validated against the `raw_size` image and the window (see
+/// The events are validated against the `width × height` image and the window (see
 /// [`EventSlice::validate`]) block by block inside the first pass, while each block is in
 /// cache; an invalid event is reported, naming the first one, before the output is touched.
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn accumulate_mapped<M>(
+fn accumulate(
     events: &EventSlice<'_>,
-    raw_size: (u32, u32),
     width: u32,
     height: u32,
     t_start_ns: i64,
@@ -333,12 +322,8 @@ pub(crate) fn accumulate_mapped<M>(
     params: &E3ctParams,
     workspace: &mut E3ctWorkspace,
     out: &mut [f32],
-    map: M,
-) -> Result<()>
-where
-    M: Fn(u16, u16) -> Option<(u16, u16)> + Sync,
-{
-    let (raw_w, raw_h) = raw_size;
+) -> Result<()> {
+    let (raw_w, raw_h) = (width, height);
     check_frame(raw_w, raw_h, t_start_ns, t_end_ns)?;
     let (w, h) = (width as usize, height as usize);
     let c = params.output_channels();
@@ -366,13 +351,12 @@ where
         events.validate(raw_w, raw_h, t_start_ns, t_end_ns)?;
         out.fill(0.0);
         for k in 0..n {
-            if let Some((x, y)) = map(events.x[k], events.y[k]) {
-                let (i, w0, w1) = kernel.weights(events.t_ns[k]);
-                let group = if events.p[k] == 0 { off_offset } else { 0 } as usize;
-                let at = (usize::from(y) * w + usize::from(x)) * c + group + i;
-                out[at] += w0;
-                out[at + 1] += w1;
-            }
+            let (x, y) = (events.x[k], events.y[k]);
+            let (i, w0, w1) = kernel.weights(events.t_ns[k]);
+            let group = if events.p[k] == 0 { off_offset } else { 0 } as usize;
+            let at = (usize::from(y) * w + usize::from(x)) * c + group + i;
+            out[at] += w0;
+            out[at + 1] += w1;
         }
         return Ok(());
     }
@@ -392,7 +376,6 @@ where
     let c32 = c as u32;
     // Pass 1, block by block: validation, votes per distinct stamp, and each event appended
     // to its band's list (through the band's staging line).
-    let map = &map;
     chunks[..n_chunks]
         .par_iter_mut()
         .enumerate()
@@ -431,7 +414,6 @@ where
                         &kernel,
                         &row_place,
                         move |x, y, p| {
-                            let (x, y) = map(x, y)?;
                             let polarity = if p == 0 { off_offset } else { 0 };
                             Some((usize::from(y), u32::from(x) * c32 + polarity))
                         },

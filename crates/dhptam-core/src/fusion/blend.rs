@@ -201,14 +201,32 @@ pub fn fuse_e3ct(frame: &[u8], e3ct: &[f32], channels: usize, beta: f64) -> Resu
     }
     let (a, b) = ((1.0 - beta) as f32, (beta * 255.0) as f32);
     let mut out = vec![0u8; frame.len()];
+    // The common channel counts as constants, so the per-pixel maximum is unrolled.
+    match channels {
+        3 => blend_pieces::<3>(&mut out, frame, e3ct, 3, a, b),
+        4 => blend_pieces::<4>(&mut out, frame, e3ct, 4, a, b),
+        c => blend_pieces::<0>(&mut out, frame, e3ct, c, a, b),
+    }
+    Ok(out)
+}
+
+/// The loop of [`fuse_e3ct`] with `c = C` channels when `C > 0`.
+fn blend_pieces<const C: usize>(
+    out: &mut [u8],
+    frame: &[u8],
+    e3ct: &[f32],
+    c: usize,
+    a: f32,
+    b: f32,
+) {
+    let c = if C > 0 { C } else { c };
     out.par_chunks_mut(BETA_PIECE)
         .zip(frame.par_chunks(BETA_PIECE))
-        .zip(e3ct.par_chunks(BETA_PIECE * channels))
+        .zip(e3ct.par_chunks(BETA_PIECE * c))
         .for_each(|((out, frame), e3ct)| {
-            for ((o, &c), px) in out.iter_mut().zip(frame).zip(e3ct.chunks_exact(channels)) {
-                let d = px.iter().copied().fold(0.0f32, f32::max).clamp(0.0, 1.0);
-                *o = (a * f32::from(c) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8;
+            for ((o, &f), px) in out.iter_mut().zip(frame).zip(e3ct.chunks_exact(c)) {
+                let d = (0..c).fold(0.0f32, |m, k| m.max(px[k])).clamp(0.0, 1.0);
+                *o = (a * f32::from(f) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8;
             }
         });
-    Ok(out)
 }

@@ -14,4 +14,4 @@ pub use blend::{
     choose_beta, fuse, fuse_e3ct, intensity_from_e3ct, BetaDecision, Bias, FusionMode,
 };
 pub use rectify::{EventRectifier, RectifiedEvents};
-pub use warp::{Depth, EventFrameWarp};
+pub use warp::{Depth, EventFrameWarp, WarpMap};

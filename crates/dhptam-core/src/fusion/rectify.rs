@@ -12,8 +12,7 @@ use nalgebra::Vector2;
 use rayon::prelude::*;
 
 use crate::error::Result;
-use crate::events::e3ct::accumulate_mapped;
-use crate::events::{E3ctParams, E3ctWorkspace, EventSlice};
+use crate::events::EventSlice;
 use crate::geometry::rectify::{RectifiedStereo, Side};
 
 /// Marks a raw pixel without a rectified pixel in the table.
@@ -114,10 +113,10 @@ impl EventRectifier {
         let n = events.len();
         // Pass 1: the rectified pixel index of every event (or OUTSIDE) and, per chunk, the
         // kept count, which places each chunk's output after the previous chunks' outputs.
-        // Zeroed pages without a fill pass: every slot is written below.
-        let mut index = vec![0u32; n];
+        // Allocated without zeroing: every slot is written here, every output value below.
+        let mut index: Vec<u32> = Vec::with_capacity(n);
         let width = self.width as usize;
-        let counts: Vec<usize> = index
+        let counts: Vec<usize> = index.spare_capacity_mut()[..n]
             .par_chunks_mut(APPLY_CHUNK)
             .enumerate()
             .map(|(c, out)| {
@@ -127,24 +126,27 @@ impl EventRectifier {
                 let mut kept = 0;
                 for ((slot, &u), &v) in out.iter_mut().zip(xs).zip(ys) {
                     // validate() guaranteed u < width and v < height.
-                    *slot = self.table[usize::from(v) * width + usize::from(u)];
-                    kept += usize::from(*slot != OUTSIDE);
+                    let entry = self.table[usize::from(v) * width + usize::from(u)];
+                    slot.write(entry);
+                    kept += usize::from(entry != OUTSIDE);
                 }
                 kept
             })
             .collect();
+        // SAFETY: the chunks above cover all `n` slots and each wrote every one of its slots.
+        unsafe { index.set_len(n) };
         let total: usize = counts.iter().sum();
-        let mut out = RectifiedEvents {
-            x: vec![0; total],
-            y: vec![0; total],
-            t_ns: vec![0; total],
-            p: vec![0; total],
-        };
+        let (mut x, mut y, mut t_ns, mut p) = (
+            Vec::with_capacity(total),
+            Vec::with_capacity(total),
+            Vec::with_capacity(total),
+            Vec::with_capacity(total),
+        );
         // Pass 2: every chunk writes its kept events into its own disjoint output ranges.
-        let mut xs = split_at_offsets(&mut out.x, &counts);
-        let mut ys = split_at_offsets(&mut out.y, &counts);
-        let mut ts = split_at_offsets(&mut out.t_ns, &counts);
-        let mut ps = split_at_offsets(&mut out.p, &counts);
+        let mut xs = split_at_offsets(&mut x.spare_capacity_mut()[..total], &counts);
+        let mut ys = split_at_offsets(&mut y.spare_capacity_mut()[..total], &counts);
+        let mut ts = split_at_offsets(&mut t_ns.spare_capacity_mut()[..total], &counts);
+        let mut ps = split_at_offsets(&mut p.spare_capacity_mut()[..total], &counts);
         xs.par_iter_mut()
             .zip(ys.par_iter_mut())
             .zip(ts.par_iter_mut().zip(ps.par_iter_mut()))
@@ -155,53 +157,23 @@ impl EventRectifier {
                 let mut j = 0;
                 for (k, &e) in (start..end).zip(&index[start..end]) {
                     if e != OUTSIDE {
-                        xo[j] = (e & 0xFFFF) as u16;
-                        yo[j] = (e >> 16) as u16;
-                        to[j] = events.t_ns[k];
-                        po[j] = events.p[k];
+                        xo[j].write((e & 0xFFFF) as u16);
+                        yo[j].write((e >> 16) as u16);
+                        to[j].write(events.t_ns[k]);
+                        po[j].write(events.p[k]);
                         j += 1;
                     }
                 }
             });
-        Ok(out)
-    }
-
-    /// The E3CT of a raw window in the rectified event camera (`rect_height × rect_width × C`
-    /// into `out`), without materialising the rectified events: the lookup happens inside
-    /// the E3CT's first pass. The same values as [`crate::events::e3ct_into`] of [`Self::apply`]'s output
-    /// (the same events, in the same order, at the same pixels), bit for bit.
-    ///
-    /// Raw events are validated against the raw image as in [`Self::apply`]; events leaving
-    /// the rectified view are dropped.
-    #[allow(clippy::too_many_arguments)]
-    pub fn e3ct_into(
-        &self,
-        events: &EventSlice<'_>,
-        t_start_ns: i64,
-        t_end_ns: i64,
-        params: &E3ctParams,
-        workspace: &mut E3ctWorkspace,
-        out: &mut [f32],
-    ) -> Result<()> {
-        params.check()?;
-        let width = self.width as usize;
-        let table = &self.table;
-        accumulate_mapped(
-            events,
-            (self.width, self.height),
-            self.rect_width,
-            self.rect_height,
-            t_start_ns,
-            t_end_ns,
-            params,
-            workspace,
-            out,
-            |u, v| {
-                // Validated: u < width and v < height, so the entry exists.
-                let entry = *table.get(usize::from(v) * width + usize::from(u))?;
-                (entry != OUTSIDE).then_some(((entry & 0xFFFF) as u16, (entry >> 16) as u16))
-            },
-        )
+        // SAFETY: chunk c kept exactly counts[c] events (pass 1 counted the same test), so it
+        // wrote every slot of its ranges, and the ranges cover `total` slots of each array.
+        unsafe {
+            x.set_len(total);
+            y.set_len(total);
+            t_ns.set_len(total);
+            p.set_len(total);
+        }
+        Ok(RectifiedEvents { x, y, t_ns, p })
     }
 }
 

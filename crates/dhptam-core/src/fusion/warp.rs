@@ -17,6 +17,8 @@
 //! `P_c` looks up `P_d = π(H⁻¹ (P_c − δP_align))`, which is exact for the same plane.
 //! `Depth::Plane` can be updated per frame, e.g. to the median depth of tracked map points.
 
+use std::mem::MaybeUninit;
+
 use nalgebra::{Matrix3, Vector2, Vector3};
 use rayon::prelude::*;
 
@@ -123,12 +125,11 @@ impl EventFrameWarp {
     }
 
     /// Resamples an event image (`src_w × src_h × channels`, channel fastest) into a frame
-    /// image of `dst_w × dst_h × channels`, bilinear, 0 outside the event image.
+    /// image of `dst_w × dst_h × channels`, bilinear, 0 outside the event image: the same
+    /// values as [`Self::unwarp_pixel`] followed by a bilinear sample.
     ///
-    /// Parallel over rows. Along a row the homogeneous source point is affine in the column,
-    /// so each pixel costs two additions, one divide and the four taps; taps inside the
-    /// image (all but a one-pixel border) skip the per-tap bounds tests. Same values as
-    /// [`Self::unwarp_pixel`] followed by a bilinear sample.
+    /// Builds the [`WarpMap`] for these sizes and applies it; to warp many images of the same
+    /// sizes, build the map once with [`Self::map`] and call [`WarpMap::apply`].
     pub fn warp_image(
         &self,
         src: &[f32],
@@ -138,125 +139,290 @@ impl EventFrameWarp {
         dst_w: usize,
         dst_h: usize,
     ) -> Result<Vec<f32>> {
-        if channels == 0 || src.len() != src_w * src_h * channels {
+        self.map(src_w, src_h, dst_w, dst_h)?
+            .apply(src, channels, None)
+    }
+
+    /// The inverse warp of every pixel of a `dst_w × dst_h` frame image into a `src_w × src_h`
+    /// event image, computed once (see [`WarpMap`]).
+    ///
+    /// Parallel over frame rows. Along a row the homogeneous source point is affine in the
+    /// column, so each pixel costs two additions and one divide.
+    pub fn map(&self, src_w: usize, src_h: usize, dst_w: usize, dst_h: usize) -> Result<WarpMap> {
+        if src_w.saturating_mul(src_h) >= NO_SOURCE as usize {
             return Err(Error::invalid(
                 "src",
-                format!("{src_w}×{src_h}×{channels} values"),
-                format!("{} values", src.len()),
+                format!("fewer than {NO_SOURCE} event pixels"),
+                format!("{src_w}×{src_h}"),
             ));
-        }
-        let mut dst = vec![0f32; dst_w * dst_h * channels];
-        if dst.is_empty() {
-            return Ok(dst);
         }
         let h = self.event_from_frame_h;
         let step = h.column(0).into_owned();
-        dst.par_chunks_mut(dst_w * channels)
-            .enumerate()
-            .for_each(|(v, row)| {
+        let rows: Vec<(Vec<MapEntry>, Vec<EdgePixel>)> = (0..dst_h)
+            .into_par_iter()
+            .map(|v| {
+                let mut entries = Vec::with_capacity(dst_w);
+                let mut edges = Vec::new();
                 // p(u) = H (u − a_x, v − a_y, 1) = H (−a_x, v − a_y, 1) + u H e₁.
                 let start = h * Vector3::new(-self.align_px.x, v as f64 - self.align_px.y, 1.0);
-                for (u, out) in row.chunks_exact_mut(channels).enumerate() {
+                for u in 0..dst_w {
                     let p = start + step * u as f64;
-                    if p.z > 0.0 {
-                        sample(
-                            src,
-                            src_w,
-                            src_h,
-                            channels,
-                            p.x / p.z,
-                            p.y / p.z,
-                            out,
-                            |s, _| s,
-                        );
+                    let mut entry = MapEntry {
+                        base: NO_SOURCE,
+                        ax: 0.0,
+                        ay: 0.0,
+                    };
+                    let (x, y) = (p.x / p.z, p.y / p.z);
+                    if p.z > 0.0 && x > -1.0 && y > -1.0 && x < src_w as f64 && y < src_h as f64 {
+                        let (xf, yf) = (x.floor(), y.floor());
+                        let (ax, ay) = ((x - xf) as f32, (y - yf) as f32);
+                        let (x0, y0) = (xf as isize, yf as isize);
+                        if x0 >= 0
+                            && y0 >= 0
+                            && (x0 as usize) + 1 < src_w
+                            && (y0 as usize) + 1 < src_h
+                        {
+                            entry = MapEntry {
+                                base: (y0 as usize * src_w + x0 as usize) as u32,
+                                ax,
+                                ay,
+                            };
+                        } else {
+                            edges.push(EdgePixel {
+                                pixel: v * dst_w + u,
+                                x0,
+                                y0,
+                                ax,
+                                ay,
+                            });
+                        }
                     }
+                    entries.push(entry);
                 }
-            });
-        Ok(dst)
+                (entries, edges)
+            })
+            .collect();
+        let mut entries = Vec::with_capacity(dst_w * dst_h);
+        let mut edges = Vec::new();
+        for (row, edge) in rows {
+            entries.extend(row);
+            edges.extend(edge);
+        }
+        Ok(WarpMap {
+            src_w,
+            src_h,
+            dst_w,
+            dst_h,
+            entries,
+            edges,
+        })
     }
-    /// The fused frame of one camera in one pass over the frame's pixels: the same `u8`
-    /// values as [`crate::fusion::fuse_e3ct`]`(frame, warp_image(scaled(src, scales)), C, β)`
-    /// (normalise, warp, blend), bit for bit, without the normalised and the warped images.
+}
+
+/// Marks a frame pixel of a [`WarpMap`] whose four taps are not all inside the event image.
+const NO_SOURCE: u32 = u32::MAX;
+
+/// Frame pixels per parallel piece of [`WarpMap::apply`].
+const APPLY_PIECE: usize = 1 << 14;
+
+/// One frame pixel of a [`WarpMap`]: the event pixel index of its top-left bilinear tap and
+/// the fractions toward the right and lower taps.
+#[derive(Clone, Copy, Debug)]
+struct MapEntry {
+    /// `y0 · src_w + x0`, or [`NO_SOURCE`] (nothing to sample, or an [`EdgePixel`]).
+    base: u32,
+    ax: f32,
+    ay: f32,
+}
+
+/// A frame pixel whose bilinear taps straddle the event image's border (some taps outside).
+#[derive(Clone, Copy, Debug)]
+struct EdgePixel {
+    /// Frame pixel index `v · dst_w + u`.
+    pixel: usize,
+    x0: isize,
+    y0: isize,
+    ax: f32,
+    ay: f32,
+}
+
+/// The inverse warp of an [`EventFrameWarp`] for one event-image size and one frame-image
+/// size, precomputed: per frame pixel the event pixel of its top-left bilinear tap and the
+/// two fractions (12 bytes), so that warping an image is one gather pass without any
+/// homography, divide or bounds test. The few frame pixels whose taps straddle the event
+/// image's border are kept apart and sampled tap by tap.
+///
+/// The values are those of [`EventFrameWarp::unwarp_pixel`] followed by a bilinear sample
+/// (pixel centres at integers, 0 outside the event image), bit for bit: the fractions are
+/// stored as the `f32` the sample computes, and the taps are added in the same order.
+#[derive(Clone, Debug)]
+pub struct WarpMap {
+    src_w: usize,
+    src_h: usize,
+    dst_w: usize,
+    dst_h: usize,
+    entries: Vec<MapEntry>,
+    edges: Vec<EdgePixel>,
+}
+
+impl WarpMap {
+    /// Event image size `(width, height)` the map samples.
+    pub fn src_size(&self) -> (usize, usize) {
+        (self.src_w, self.src_h)
+    }
+
+    /// Frame image size `(width, height)` the map fills.
+    pub fn dst_size(&self) -> (usize, usize) {
+        (self.dst_w, self.dst_h)
+    }
+
+    /// Warps `src` (`src_w × src_h × channels`, channel fastest) into a new frame image
+    /// (`dst_w × dst_h × channels`).
     ///
-    /// `frame` is the rectified 8-bit frame (`frame_w × frame_h`), `src` the raw
-    /// (not normalised) rectified E3CT (`src_w × src_h × C`, `C = scales.len()`), `scales`
-    /// the per-channel scales of [`crate::events::channel_scales`], `beta` the weight of the
-    /// events in `[0, 1]`. Each bilinear tap is scaled and clipped before it is weighted,
-    /// exactly as the three separate passes do. Parallel over frame rows.
-    #[allow(clippy::too_many_arguments)]
-    pub fn fuse_frame(
-        &self,
-        frame: &[u8],
-        frame_w: usize,
-        frame_h: usize,
-        src: &[f32],
-        src_w: usize,
-        src_h: usize,
-        scales: &[f32],
-        beta: f64,
-    ) -> Result<Vec<u8>> {
-        let channels = scales.len();
-        if channels == 0 || src.len() != src_w * src_h * channels {
+    /// With `scales` (one positive finite value per channel), each tap is first normalised as
+    /// [`crate::events::scaled`] does (`(s · (1 / scale)).clamp(0, 1)`): the result equals
+    /// warping the normalised image, bit for bit, without making it. Clipping is not linear,
+    /// so it cannot move after the interpolation without changing the values.
+    ///
+    /// Parallel over pieces of frame pixels; every output value is written once (the output
+    /// is not zeroed first).
+    pub fn apply(&self, src: &[f32], channels: usize, scales: Option<&[f32]>) -> Result<Vec<f32>> {
+        if channels == 0 || src.len() != self.src_w * self.src_h * channels {
             return Err(Error::invalid(
                 "src",
-                format!("{src_w}×{src_h}×{channels} values (one scale per channel)"),
+                format!("{}×{}×{channels} values", self.src_w, self.src_h),
                 format!("{} values", src.len()),
             ));
         }
-        if frame.len() != frame_w * frame_h {
-            return Err(Error::invalid(
-                "frame",
-                format!("{frame_w}×{frame_h} pixels"),
-                format!("{} pixels", frame.len()),
-            ));
+        let inv = match scales {
+            None => None,
+            Some(scales) => {
+                if scales.len() != channels {
+                    return Err(Error::invalid(
+                        "scales",
+                        format!("{channels} scales, one per channel"),
+                        format!("{} scales", scales.len()),
+                    ));
+                }
+                if let Some(i) = scales.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
+                    return Err(Error::invalid(
+                        format!("scales[{i}]"),
+                        "a positive finite scale",
+                        scales[i],
+                    ));
+                }
+                // The same constants as `events::scaled`, so the same roundings.
+                Some(scales.iter().map(|s| 1.0 / s).collect::<Vec<f32>>())
+            }
+        };
+        let n = self.dst_w * self.dst_h * channels;
+        let mut dst: Vec<f32> = Vec::with_capacity(n);
+        let out = &mut dst.spare_capacity_mut()[..n];
+        // Constant channel counts get their own unrolled loops (the E3CT has 3 or 4 channels);
+        // `C = 0` is the loop for any count.
+        match inv.as_deref() {
+            None => self.gather_any(src, channels, out, |s, _| s),
+            Some(k) => self.gather_any(src, channels, out, |s, i| (s * k[i]).clamp(0.0, 1.0)),
         }
-        if let Some(i) = scales.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
-            return Err(Error::invalid(
-                format!("scales[{i}]"),
-                "a positive finite scale",
-                scales[i],
-            ));
+        // SAFETY: `gather` wrote all `n` values of the spare capacity: each piece writes every
+        // value of every one of its pixels (a value, or 0 where nothing is sampled).
+        unsafe { dst.set_len(n) };
+        Ok(dst)
+    }
+
+    /// [`Self::gather`] with the channel count a constant where it is 1 to 4.
+    fn gather_any(
+        &self,
+        src: &[f32],
+        c: usize,
+        out: &mut [MaybeUninit<f32>],
+        value: impl Fn(f32, usize) -> f32 + Sync,
+    ) {
+        match c {
+            1 => self.gather::<1>(src, c, out, value),
+            2 => self.gather::<2>(src, c, out, value),
+            3 => self.gather::<3>(src, c, out, value),
+            4 => self.gather::<4>(src, c, out, value),
+            _ => self.gather::<0>(src, c, out, value),
         }
-        if !(0.0..=1.0).contains(&beta) {
-            return Err(Error::invalid("beta", "a weight in [0, 1]", beta));
-        }
-        let mut fused = vec![0u8; frame.len()];
-        if fused.is_empty() {
-            return Ok(fused);
-        }
-        // The same constants as `scaled` and `fuse_e3ct`, so the same roundings.
-        let inv: Vec<f32> = scales.iter().map(|s| 1.0 / s).collect();
-        let (a, b) = ((1.0 - beta) as f32, (beta * 255.0) as f32);
-        let h = self.event_from_frame_h;
-        let step = h.column(0).into_owned();
-        fused
-            .par_chunks_mut(frame_w)
-            .zip(frame.par_chunks(frame_w))
+    }
+
+    /// The gather: every frame pixel's `c` values (`c = C` when `C > 0`), each tap's value
+    /// entering as `value(s, k)`.
+    fn gather<const C: usize>(
+        &self,
+        src: &[f32],
+        c: usize,
+        out: &mut [MaybeUninit<f32>],
+        value: impl Fn(f32, usize) -> f32 + Sync,
+    ) {
+        let c = if C > 0 { C } else { c };
+        let (w, h) = (self.src_w, self.src_h);
+        out.par_chunks_mut(APPLY_PIECE * c)
+            .zip(self.entries.par_chunks(APPLY_PIECE))
             .enumerate()
-            .for_each(|(v, (out, row))| {
-                let start = h * Vector3::new(-self.align_px.x, v as f64 - self.align_px.y, 1.0);
-                let mut px = vec![0f32; channels];
-                for (u, (o, &c)) in out.iter_mut().zip(row).enumerate() {
-                    px.fill(0.0);
-                    let p = start + step * u as f64;
-                    if p.z > 0.0 {
-                        let scale = |s: f32, k: usize| (s * inv[k]).clamp(0.0, 1.0);
-                        sample(
-                            src,
-                            src_w,
-                            src_h,
-                            channels,
-                            p.x / p.z,
-                            p.y / p.z,
-                            &mut px,
-                            scale,
-                        );
+            .for_each(|(piece, (out, entries))| {
+                for (o, e) in out.chunks_exact_mut(c).zip(entries) {
+                    if e.base == NO_SOURCE {
+                        for o in o.iter_mut() {
+                            o.write(0.0);
+                        }
+                        continue;
                     }
-                    let d = px.iter().copied().fold(0.0f32, f32::max).clamp(0.0, 1.0);
-                    *o = (a * f32::from(c) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8;
+                    let (ax, ay) = (e.ax, e.ay);
+                    let weights = [
+                        (1.0 - ax) * (1.0 - ay),
+                        ax * (1.0 - ay),
+                        (1.0 - ax) * ay,
+                        ax * ay,
+                    ];
+                    let at = e.base as usize * c;
+                    let rows = [&src[at..at + 2 * c], &src[at + w * c..at + (w + 2) * c]];
+                    let taps = [&rows[0][..c], &rows[0][c..], &rows[1][..c], &rows[1][c..]];
+                    for k in 0..c {
+                        // Per channel the taps in the order of the tap-by-tap sample, zero
+                        // weights skipped as it skips them.
+                        let mut acc = 0.0f32;
+                        for (tap, &weight) in taps.iter().zip(&weights) {
+                            if weight != 0.0 {
+                                acc += weight * value(tap[k], k);
+                            }
+                        }
+                        o[k].write(acc);
+                    }
+                }
+                // The pixels of this piece whose taps straddle the border.
+                let first = piece * APPLY_PIECE;
+                let end = first + entries.len();
+                let lo = self.edges.partition_point(|e| e.pixel < first);
+                let hi = self.edges.partition_point(|e| e.pixel < end);
+                for e in &self.edges[lo..hi] {
+                    let o = &mut out[(e.pixel - first) * c..(e.pixel - first + 1) * c];
+                    let (ax, ay) = (e.ax, e.ay);
+                    let taps = [
+                        (0, 0, (1.0 - ax) * (1.0 - ay)),
+                        (1, 0, ax * (1.0 - ay)),
+                        (0, 1, (1.0 - ax) * ay),
+                        (1, 1, ax * ay),
+                    ];
+                    for (k, o) in o.iter_mut().enumerate() {
+                        let mut acc = 0.0f32;
+                        for &(dx, dy, weight) in &taps {
+                            let (xi, yi) = (e.x0 + dx, e.y0 + dy);
+                            if xi < 0
+                                || yi < 0
+                                || xi as usize >= w
+                                || yi as usize >= h
+                                || weight == 0.0
+                            {
+                                continue;
+                            }
+                            acc += weight * value(src[(yi as usize * w + xi as usize) * c + k], k);
+                        }
+                        o.write(acc);
+                    }
                 }
             });
-        Ok(fused)
     }
 }
 
@@ -272,57 +438,4 @@ fn inverse_k(k: &Pinhole) -> Matrix3<f64> {
         0.0,
         1.0,
     )
-}
-
-/// Bilinear sample of every channel at (x, y), pixel centres at integers, 0 outside; each
-/// tap's value `s` of channel `k` enters as `value(s, k)` (the identity, or a normalisation).
-#[inline]
-#[allow(clippy::too_many_arguments)]
-fn sample(
-    src: &[f32],
-    w: usize,
-    h: usize,
-    c: usize,
-    x: f64,
-    y: f64,
-    out: &mut [f32],
-    value: impl Fn(f32, usize) -> f32,
-) {
-    if !(x > -1.0 && y > -1.0 && x < w as f64 && y < h as f64) {
-        return;
-    }
-    let (xf, yf) = (x.floor(), y.floor());
-    let (ax, ay) = ((x - xf) as f32, (y - yf) as f32);
-    let (x0, y0) = (xf as isize, yf as isize);
-    let taps = [
-        (0, 0, (1.0 - ax) * (1.0 - ay)),
-        (1, 0, ax * (1.0 - ay)),
-        (0, 1, (1.0 - ax) * ay),
-        (1, 1, ax * ay),
-    ];
-    if x0 >= 0 && y0 >= 0 && (x0 as usize) + 1 < w && (y0 as usize) + 1 < h {
-        // All four taps inside: one slice of two rows, no test per tap.
-        let base = (y0 as usize * w + x0 as usize) * c;
-        let block = &src[base..base + (w + 2) * c];
-        for (dx, dy, weight) in taps {
-            if weight == 0.0 {
-                continue;
-            }
-            let at = (dy * w + dx) * c;
-            for (k, (o, &s)) in out.iter_mut().zip(&block[at..at + c]).enumerate() {
-                *o += weight * value(s, k);
-            }
-        }
-        return;
-    }
-    for (dx, dy, weight) in taps {
-        let (xi, yi) = (x0 + dx as isize, y0 + dy as isize);
-        if xi < 0 || yi < 0 || xi as usize >= w || yi as usize >= h || weight == 0.0 {
-            continue;
-        }
-        let base = (yi as usize * w + xi as usize) * c;
-        for (k, (o, &s)) in out.iter_mut().zip(&src[base..base + c]).enumerate() {
-            *o += weight * value(s, k);
-        }
-    }
 }
