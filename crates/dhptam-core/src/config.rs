@@ -347,10 +347,12 @@ config_section! {
         /// wherever it is (ORB-SLAM's rule; on the sparse tiny rig it drifted: BENCHMARKS.md).
         keyframes_per_place: u32 = 3,
         /// Radius of a place: this fraction of the new keyframe's median point depth, metres
-        /// per metre (0.1: about 6° of parallax between two keyframes at the edge).
-        place_radius_ratio: f64 = 0.1,
+        /// per metre (0.05: about 3° of parallax between two keyframes at the edge). 0.1 with
+        /// `place_max_angle_deg` 30 held too few viewpoints for relocalisation on the synthetic
+        /// circle (`relocalises_after_a_jump_to_a_known_place`).
+        place_radius_ratio: f64 = 0.05,
         /// Largest angle between the optical axes of two keyframes at one place, degrees.
-        place_max_angle_deg: f64 = 30.0,
+        place_max_angle_deg: f64 = 15.0,
         /// At most this many keyframes are removed after each new keyframe (so a removal never
         /// cascades through the map in one step).
         cull_max_per_keyframe: u32 = 2,
