@@ -29,7 +29,12 @@ def positions(system: dhptam.System) -> np.ndarray:
 
 def test_tracks_every_frame_with_noise_and_outliers() -> None:
     frames = generate(frames=200, seed=1)
-    system = run(frames)
+    system = dhptam.System(CALIB, None, threaded=False)
+    created = 0  # keyframes inserted (keyframe culling, on by default, may remove some later)
+    for f in frames:
+        r = system.track(f.t_ns, f.left, f.right)
+        assert r.state in ("initialised", "ok"), f"frame {f.t_ns}: {r.state} ({r.inliers})"
+        created += r.keyframe
     t, poses = system.trajectory()
     assert t.tolist() == [f.t_ns for f in frames]
     assert poses.shape == (200, 4, 4)
@@ -42,9 +47,10 @@ def test_tracks_every_frame_with_noise_and_outliers() -> None:
     assert points.ndim == 2 and points.shape[1] == 3 and len(points) > 500
     # Map points lie on the landmark cylinder (4-7 m from the first camera's axis).
     timing = system.timing()
-    assert timing["track"]["count"] == 200 and timing["local_ba"]["count"] == len(kf_t)
+    assert timing["track"]["count"] == 200 and timing["local_ba"]["count"] == created
+    assert len(kf_t) <= created
     # Duplicate fusion and re-finding run once per keyframe, before its bundle adjustment.
-    assert timing["fusion"]["count"] == len(kf_t)
+    assert timing["fusion"]["count"] == created
 
 
 def test_binary_descriptors_track() -> None:

@@ -352,16 +352,38 @@ config_section! {
         /// pixels (in the left image and, for stereo keypoints, in the right column).
         fuse_radius_px: f64 = 4.0,
         // --- culling (issue 10) ---
-        /// After each keyframe's bundle adjustment, remove the older keyframes covisible with
-        /// it that are redundant (see `redundant_fraction`): bounded memory on long runs that
-        /// revisit places. The map's first keyframe, loop keyframes, the first keyframes of
-        /// map segments and keyframes not yet mapped are never removed. Off by default: on the
-        /// 30-minute tiny-rig run it bounds the keyframes but the map drifts more
-        /// (docs/BENCHMARKS.md, "Keyframe culling on long runs").
-        cull_keyframes: bool = false,
+        /// After each keyframe's bundle adjustment, remove redundant older keyframes where the
+        /// map holds more than `keyframes_per_place` keyframes at the new keyframe's place (see
+        /// `place_radius_ratio`): the map then grows with the places visited, not with the
+        /// length of the run. A keyframe is removed only when it is redundant
+        /// (`redundant_fraction`), old enough (`cull_min_age`), outside the new keyframe's
+        /// local bundle-adjustment window, and its removal leaves every covisible keyframe at
+        /// least `cull_keep_shared` points seen by another keyframe. The map's first keyframe,
+        /// loop keyframes and the first keyframes of map segments are never removed. On by
+        /// default (docs/BENCHMARKS.md, "Keyframe culling by place").
+        cull_keyframes: bool = true,
+        /// Keyframes the map may hold at one place (position within `place_radius_ratio` of
+        /// the scene depth, optical axes within `place_max_angle_deg`) before the most
+        /// redundant are removed. 0 removes every redundant keyframe covisible with the new one,
+        /// wherever it is (ORB-SLAM's rule; on the sparse tiny rig it drifted: BENCHMARKS.md).
+        keyframes_per_place: u32 = 3,
+        /// Radius of a place: this fraction of the new keyframe's median point depth, metres
+        /// per metre (0.05: about 3° of parallax between two keyframes at the edge). 0.1 with
+        /// `place_max_angle_deg` 30 held too few viewpoints for relocalisation on the synthetic
+        /// circle (`relocalises_after_a_jump_to_a_known_place`).
+        place_radius_ratio: f64 = 0.05,
+        /// Largest angle between the optical axes of two keyframes at one place, degrees.
+        place_max_angle_deg: f64 = 15.0,
+        /// At most this many keyframes are removed after each new keyframe (so a removal never
+        /// cascades through the map in one step).
+        cull_max_per_keyframe: u32 = 2,
+        /// A keyframe is kept if removing it would leave a covisible keyframe fewer than this
+        /// many map points observed by some other keyframe too (or fewer than it has now, when
+        /// it has fewer): every neighbour stays tied to the map by enough shared points.
+        cull_keep_shared: u32 = 20,
         /// Only keyframes at least this many keyframes older than the one being mapped are
         /// examined: the recent window keeps all its constraints while the camera explores
-        /// (culling inside it too tripled the drift on that run).
+        /// (culling inside it too tripled the drift on the 30-minute run).
         cull_min_age: u32 = 10,
         /// A keyframe is redundant when at least this fraction of its map points are each
         /// observed by `redundant_observers` other keyframes at the same or a finer scale.
@@ -372,6 +394,10 @@ config_section! {
         /// keyframe's distance from the point (1.2: one level of a 1.2-ratio image pyramid
         /// coarser, as ORB-SLAM allows; keypoints carry no scale here, distance stands in).
         redundant_distance_ratio: f64 = 1.2,
+        /// "A similar viewing direction": the other keyframe's ray to the point is within this
+        /// angle of the keyframe's own, degrees (a point seen only from elsewhere does not make
+        /// the keyframe's view of it redundant).
+        redundant_max_angle_deg: f64 = 30.0,
         /// A point older than `cull_after_keyframes` that the window's keyframes observe in
         /// less than this fraction of those whose view it projects into (at least 3 of them)
         /// is removed: rarely found when predicted visible. 0 (the default) turns this off;
@@ -507,6 +533,32 @@ impl MappingConfig {
             (0.0..=1.0).contains(&self.min_found_ratio),
             "a value in [0, 1]",
             self.min_found_ratio,
+        )?;
+        check(
+            "mapping.place_radius_ratio",
+            self.place_radius_ratio.is_finite() && self.place_radius_ratio > 0.0,
+            "a positive number",
+            self.place_radius_ratio,
+        )?;
+        for (key, v) in [
+            ("mapping.place_max_angle_deg", self.place_max_angle_deg),
+            (
+                "mapping.redundant_max_angle_deg",
+                self.redundant_max_angle_deg,
+            ),
+        ] {
+            check(
+                key,
+                v > 0.0 && v <= 180.0,
+                "an angle in (0, 180] degrees",
+                v,
+            )?;
+        }
+        check(
+            "mapping.cull_max_per_keyframe",
+            self.cull_max_per_keyframe >= 1,
+            "at least 1",
+            self.cull_max_per_keyframe,
         )
         // --- end culling ---
     }

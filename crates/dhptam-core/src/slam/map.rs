@@ -79,6 +79,15 @@ pub struct FrameRecord {
     pub kf_from_cam: Se3,
 }
 
+/// Where a fused map point went ([`Map::replaced`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Redirect {
+    /// The live point that absorbed the removed one.
+    pub target: u64,
+    /// [`Map::next_keyframe`] when the point was fused: how old the entry is, in keyframes.
+    pub stamp: u64,
+}
+
 /// Keyframes, map points, covisibility, loops and the trajectory.
 #[derive(Clone, Debug, Default)]
 pub struct Map {
@@ -97,9 +106,12 @@ pub struct Map {
     /// Loop corrections applied so far: a bundle adjustment prepared before a correction
     /// discards its result.
     pub corrections: u64,
-    /// Points fused into others: removed id → the id that absorbed it. An id held across a
-    /// lock release (the tracker's matches) is looked up with [`Map::resolve`]; not saved.
-    pub replaced: BTreeMap<u64, u64>,
+    /// Points fused into others: removed id → the point that absorbed it. An id held across a
+    /// lock release (the tracker's matches, the fusion's proposals) is looked up with
+    /// [`Map::resolve`]; not saved. Bounded: entries always name the final point (a fusion of
+    /// the absorbing point redirects them), entries whose point was removed are dropped, and
+    /// [`Map::prune_replaced`] drops entries older than any id a reader can still hold.
+    pub replaced: BTreeMap<u64, Redirect>,
     /// First keyframes of map segments not yet joined to the segment before them: tracking
     /// started a new segment there at a guessed pose ([`super::tracking::reinitialise`]), so
     /// the relative pose to the keyframe before it is no measurement. Loop closing leaves the
@@ -116,17 +128,19 @@ impl Map {
             .map(|kf| kf.world_from_cam * record.kf_from_cam)
     }
 
-    /// The id a point lives on under: `point` itself, or the point it was fused into.
+    /// The id a point lives on under: `point` itself, or the point it was fused into (entries
+    /// always name the final point, see [`Map::merge_points`], so one look-up suffices).
     pub fn resolve(&self, point: u64) -> u64 {
-        let mut id = point;
-        // Chains are short (one link per fusion); the bound guards against a corrupt table.
-        for _ in 0..64 {
-            match self.replaced.get(&id) {
-                Some(&next) => id = next,
-                None => break,
-            }
-        }
-        id
+        self.replaced.get(&point).map_or(point, |r| r.target)
+    }
+
+    /// Drops the [`Map::replaced`] entries of fusions made before the last `horizon`
+    /// keyframes were inserted. A reader holds point ids across a lock release for one
+    /// tracking or mapping step at most, during which at most the mapping queue's length plus
+    /// two keyframes can be inserted; an id older than that is held by nobody.
+    pub fn prune_replaced(&mut self, horizon: u64) {
+        let oldest = self.next_keyframe.saturating_sub(horizon);
+        self.replaced.retain(|_, r| r.stamp >= oldest);
     }
 
     /// Adds the observation (keyframe, keypoint) → point and updates covisibility; a point
@@ -188,6 +202,8 @@ impl Map {
             self.remove_observation(kf, point);
         }
         self.points.remove(&point);
+        // Ids fused into it now resolve to a missing point, like the id itself would.
+        self.replaced.retain(|_, r| r.target != point);
     }
 
     /// Fuses point `drop` into point `keep` (two estimates of one landmark): `drop`'s
@@ -208,7 +224,18 @@ impl Map {
             self.add_observation(kf, feature as usize, keep);
         }
         self.points.remove(&drop);
-        self.replaced.insert(drop, keep);
+        // Path compression: whatever resolved to `drop` now resolves to `keep` directly.
+        let stamp = self.next_keyframe;
+        for r in self.replaced.values_mut().filter(|r| r.target == drop) {
+            r.target = keep;
+        }
+        self.replaced.insert(
+            drop,
+            Redirect {
+                target: keep,
+                stamp,
+            },
+        );
         self.update_descriptor(keep);
         self.update_normal(keep);
         true
@@ -332,6 +359,7 @@ impl Map {
             match point.observations.keys().next().copied() {
                 None => {
                     self.points.remove(&p);
+                    self.replaced.retain(|_, r| r.target != p);
                 }
                 Some(oldest) => {
                     if point.first_keyframe == kf {
@@ -354,8 +382,8 @@ impl Map {
     /// keyframes, points and keypoints; covisibility weights equal the number of shared
     /// points, symmetric, with no zero or dangling entries; each point has an observer and an
     /// existing reference keyframe; trajectory records, loops and segment starts refer to
-    /// existing keyframes; ids are below the id counters. Used by tests and after culling in
-    /// debug builds.
+    /// existing keyframes; ids are below the id counters; fused-point redirects lead from a
+    /// removed point straight to a live one. Used by tests.
     pub fn check_invariants(&self) -> Vec<String> {
         let mut errors = Vec::new();
         let mut shared: BTreeMap<(u64, u64), u32> = BTreeMap::new();
@@ -455,6 +483,14 @@ impl Map {
         for s in &self.segment_starts {
             if !self.keyframes.contains_key(s) {
                 errors.push(format!("segment start {s}: keyframe missing"));
+            }
+        }
+        for (from, r) in &self.replaced {
+            if self.points.contains_key(from) || !self.points.contains_key(&r.target) {
+                errors.push(format!(
+                    "fused point {from} → {}: the source is live or the target is gone",
+                    r.target
+                ));
             }
         }
         errors

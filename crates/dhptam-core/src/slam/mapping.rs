@@ -184,9 +184,20 @@ pub fn local_mapping(
             m.update_normal(*id);
         }
     }
+    m.prune_replaced(replaced_horizon(cfg));
     log::debug!("mapping: keyframe {kf}: {report:?}");
     Ok(report)
 }
+
+/// How many keyframes back [`Map::replaced`] entries are kept: a reader holds point ids for
+/// one tracking or mapping step, during which at most `queue + 2` keyframes can be inserted;
+/// four times that, and at least [`REPLACED_HORIZON_MIN`], leaves a wide margin.
+pub fn replaced_horizon(cfg: &MappingConfig) -> u64 {
+    REPLACED_HORIZON_MIN.max(4 * (cfg.queue as u64 + 2))
+}
+
+/// Smallest [`replaced_horizon`], keyframes.
+pub const REPLACED_HORIZON_MIN: u64 = 64;
 
 /// Whether the keyframes `window` observe point `id` in less than
 /// [`MappingConfig::min_found_ratio`] of those whose view it projects into (inside the image,
@@ -245,25 +256,33 @@ pub struct CullReport {
 }
 
 /// The fraction of keyframe `id`'s map points that at least
-/// [`MappingConfig::redundant_observers`] other keyframes observe from no farther than
-/// [`MappingConfig::redundant_distance_ratio`] times `id`'s own distance to the point (the
-/// same or a finer image scale); `None` for a keyframe without points.
+/// [`MappingConfig::redundant_observers`] other keyframes observe at the same or a finer scale
+/// (from no farther than [`MappingConfig::redundant_distance_ratio`] times `id`'s own distance
+/// to the point) and from a similar direction (their ray to the point within
+/// [`MappingConfig::redundant_max_angle_deg`] of `id`'s); `None` for a keyframe without points.
 pub fn redundancy(map: &Map, id: u64, cfg: &MappingConfig) -> Option<f64> {
     let k = map.keyframes.get(&id)?;
     let centre = k.centre();
+    let cos_max = cfg.redundant_max_angle_deg.to_radians().cos();
     let (mut total, mut redundant) = (0usize, 0usize);
     for pid in k.points.iter().flatten() {
         let Some(p) = map.points.get(pid) else {
             continue;
         };
         total += 1;
-        let reach = cfg.redundant_distance_ratio * (p.position - centre).norm();
+        let own = p.position - centre;
+        let own_norm = own.norm();
+        let reach = cfg.redundant_distance_ratio * own_norm;
         let others = p
             .observations
             .keys()
             .filter(|&&o| o != id)
             .filter_map(|o| map.keyframes.get(o))
-            .filter(|o| (p.position - o.centre()).norm() <= reach)
+            .filter(|o| {
+                let ray = p.position - o.centre();
+                let n = ray.norm();
+                n <= reach && ray.dot(&own) >= cos_max * n * own_norm
+            })
             .count();
         if others >= cfg.redundant_observers as usize {
             redundant += 1;
@@ -272,16 +291,89 @@ pub fn redundancy(map: &Map, id: u64, cfg: &MappingConfig) -> Option<f64> {
     (total > 0).then(|| redundant as f64 / total as f64)
 }
 
-/// Removes the keyframes covisible with `kf` (and older than it) that are redundant: at least
-/// [`MappingConfig::redundant_fraction`] of their points are seen by enough other keyframes at
-/// the same or a finer scale ([`redundancy`]; ORB-SLAM's rule). Never removed: the map's first
-/// keyframe, keyframes of accepted loops, first keyframes of map segments, and `kf` and newer
-/// keyframes (not mapped yet; the tracker's reference is the newest), and keyframes younger
-/// than [`MappingConfig::cull_min_age`] keyframes. A removed keyframe's
-/// observations, trajectory records and covisibility are handed over by
-/// [`Map::cull_keyframe`] (records to its most covisible keyframe) and its place-database
-/// entry is removed. Candidates are examined oldest first, each against the map as the
-/// previous removals left it.
+/// The keyframes at the place of keyframe `kf`, `kf` included: camera centres within
+/// [`MappingConfig::place_radius_ratio`] times `kf`'s median point depth of `kf`'s centre and
+/// optical axes within [`MappingConfig::place_max_angle_deg`] of `kf`'s. Empty when `kf` is
+/// missing or observes no point in front of it.
+pub fn keyframes_at_place(map: &Map, kf: u64, cfg: &MappingConfig) -> Vec<u64> {
+    let Some(k) = map.keyframes.get(&kf) else {
+        return Vec::new();
+    };
+    let cam_from_world = k.world_from_cam.inverse();
+    let mut depths: Vec<f64> = k
+        .points
+        .iter()
+        .flatten()
+        .filter_map(|p| map.points.get(p))
+        .map(|p| cam_from_world.transform_point(&p.position).z)
+        .filter(|z| *z > 0.0)
+        .collect();
+    if depths.is_empty() {
+        return Vec::new();
+    }
+    depths.sort_by(f64::total_cmp);
+    let radius = cfg.place_radius_ratio * depths[depths.len() / 2];
+    let axis = |s: &super::map::Keyframe| s.world_from_cam.rotation * Vector3::z();
+    let own_axis = axis(k);
+    let cos_max = cfg.place_max_angle_deg.to_radians().cos();
+    let centre = k.centre();
+    map.keyframes
+        .values()
+        .filter(|o| (o.centre() - centre).norm() <= radius && axis(o).dot(&own_axis) >= cos_max)
+        .map(|o| o.id)
+        .collect()
+}
+
+/// Whether removing keyframe `c` leaves each keyframe covisible with it at least
+/// `min(cull_keep_shared, what it has now)` map points that some keyframe other than itself
+/// and `c` observes too ([`MappingConfig::cull_keep_shared`]).
+fn neighbours_stay_tied(map: &Map, c: u64, cfg: &MappingConfig) -> bool {
+    let Some(k) = map.keyframes.get(&c) else {
+        return false;
+    };
+    let floor = cfg.cull_keep_shared as usize;
+    k.covisible.keys().all(|n| {
+        let Some(nk) = map.keyframes.get(n) else {
+            return true;
+        };
+        let (mut before, mut after) = (0usize, 0usize);
+        for p in nk.points.iter().flatten().filter_map(|p| map.points.get(p)) {
+            let others = p.observations.len().saturating_sub(1);
+            if others >= 1 {
+                before += 1;
+                if others - usize::from(p.observations.contains_key(&c)) >= 1 {
+                    after += 1;
+                }
+            }
+        }
+        after >= before.min(floor)
+    })
+}
+
+/// Removes redundant keyframes after keyframe `kf` was mapped, so that the map holds at most
+/// [`MappingConfig::keyframes_per_place`] keyframes at `kf`'s place ([`keyframes_at_place`])
+/// and at the place of the keyframe that has just become old enough to be culled (the newest
+/// at least [`MappingConfig::cull_min_age`] keyframes older than `kf`: a keyframe that
+/// duplicates older ones goes as soon as it leaves the active window, not only when the
+/// camera comes back once more). With a budget of 0, every redundant keyframe covisible with
+/// `kf` is a candidate, wherever it is.
+///
+/// A candidate is removed, most redundant first (ties: the newer), at most
+/// [`MappingConfig::cull_max_per_keyframe`] per call, when all of these hold:
+/// - at least [`MappingConfig::redundant_fraction`] of its points are seen by enough other
+///   keyframes at the same or a finer scale and from a similar direction ([`redundancy`],
+///   re-evaluated against the map as the previous removals left it);
+/// - it is at least [`MappingConfig::cull_min_age`] keyframes older than `kf` and not in
+///   `kf`'s local bundle-adjustment window (`kf` and its `window − 1` most covisible
+///   keyframes), so the constraints tracking and mapping work with right now stay;
+/// - it is not the map's first keyframe, a keyframe of an accepted loop or the first keyframe
+///   of a map segment;
+/// - each keyframe covisible with it keeps enough points shared with the rest of the map
+///   ([`MappingConfig::cull_keep_shared`]).
+///
+/// A removed keyframe's observations, trajectory records and covisibility are handed over by
+/// [`Map::cull_keyframe`] (records to its most covisible keyframe) and its place-database entry
+/// is removed under the same map lock.
 pub fn cull_keyframes(
     map: &RwLock<Map>,
     place: &Mutex<PlaceDatabase>,
@@ -297,26 +389,85 @@ pub fn cull_keyframes(
         return report;
     };
     let first = m.keyframes.keys().next().copied();
+    let window = k.best_covisible(cfg.window.saturating_sub(1) as usize);
     let protected: BTreeSet<u64> = m
         .loops
         .iter()
         .flat_map(|&(a, b)| [a, b])
         .chain(m.segment_starts.iter().copied())
         .chain(first)
+        .chain(window)
         .collect();
-    let candidates: Vec<u64> = k
-        .covisible
-        .keys()
-        .copied()
-        .filter(|&c| c.saturating_add(cfg.cull_min_age as u64) <= kf && c < kf)
-        .filter(|c| !protected.contains(c))
+    let eligible = |c: u64| {
+        c < kf && c.saturating_add(cfg.cull_min_age as u64) <= kf && !protected.contains(&c)
+    };
+    if cfg.keyframes_per_place == 0 {
+        let pool: Vec<u64> = k.covisible.keys().copied().collect();
+        cull_among(
+            &mut m,
+            place,
+            kf,
+            pool,
+            usize::MAX,
+            &eligible,
+            cfg,
+            &mut report,
+        );
+        return report;
+    }
+    let aged = m
+        .keyframes
+        .range(..=kf.saturating_sub(cfg.cull_min_age as u64))
+        .next_back()
+        .map(|(&id, _)| id)
+        .filter(|&a| a != kf);
+    for anchor in std::iter::once(kf).chain(aged) {
+        let here = keyframes_at_place(&m, anchor, cfg);
+        let crowd = here.len();
+        cull_among(&mut m, place, kf, here, crowd, &eligible, cfg, &mut report);
+    }
+    report
+}
+
+/// Removes the most redundant eligible keyframes of `pool` (see [`cull_keyframes`]) while
+/// more than [`MappingConfig::keyframes_per_place`] of `crowd` remain and the per-call cap is
+/// not reached.
+#[allow(clippy::too_many_arguments)]
+fn cull_among(
+    m: &mut Map,
+    place: &Mutex<PlaceDatabase>,
+    kf: u64,
+    pool: Vec<u64>,
+    mut crowd: usize,
+    eligible: &dyn Fn(u64) -> bool,
+    cfg: &MappingConfig,
+    report: &mut CullReport,
+) {
+    let budget = cfg.keyframes_per_place as usize;
+    let cap = cfg.cull_max_per_keyframe as usize;
+    if crowd <= budget || report.removed.len() >= cap {
+        return;
+    }
+    let mut ranked: Vec<(f64, u64)> = pool
+        .into_iter()
+        .filter(|&c| eligible(c))
+        .filter_map(|c| {
+            report.examined += 1;
+            redundancy(m, c, cfg)
+                .filter(|&r| r >= cfg.redundant_fraction)
+                .map(|r| (r, c))
+        })
         .collect();
-    for c in candidates {
-        report.examined += 1;
-        let Some(r) = redundancy(&m, c, cfg) else {
+    ranked.sort_by(|a, b| b.0.total_cmp(&a.0).then(b.1.cmp(&a.1)));
+    for (_, c) in ranked {
+        if report.removed.len() >= cap || crowd <= budget {
+            break;
+        }
+        // Earlier removals this step may have made `c` the only observer of some points.
+        let Some(r) = redundancy(m, c, cfg).filter(|&r| r >= cfg.redundant_fraction) else {
             continue;
         };
-        if r < cfg.redundant_fraction {
+        if !neighbours_stay_tied(m, c, cfg) {
             continue;
         }
         let Some(substitute) = m
@@ -329,15 +480,16 @@ pub fn cull_keyframes(
         if m.cull_keyframe(c, substitute) {
             super::lock(place).remove(c);
             log::debug!(
-                "mapping: keyframe {kf}: keyframe {c} culled ({:.0} % of its points redundant; \
-                 its frames now refer to keyframe {substitute})",
+                "mapping: keyframe {kf}: keyframe {c} culled ({:.0} % of its points redundant, \
+                 {crowd} keyframes at the place; its frames now refer to keyframe {substitute})",
                 100.0 * r
             );
             report.removed.push(c);
+            crowd = crowd.saturating_sub(1);
         }
     }
-    report
 }
+
 // --- end keyframe culling ---
 
 /// What one fusion step did.

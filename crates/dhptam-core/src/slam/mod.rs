@@ -24,8 +24,8 @@ use crate::geometry::camera::Pinhole;
 use crate::geometry::Se3;
 use crate::solver::StereoIntrinsics;
 
-pub use map::{FrameRecord, Keyframe, Map, MapPoint};
-pub use mapping::{cull_keyframes, redundancy, CullReport};
+pub use map::{FrameRecord, Keyframe, Map, MapPoint, Redirect};
+pub use mapping::{cull_keyframes, keyframes_at_place, redundancy, replaced_horizon, CullReport};
 pub use mapping::{fuse_and_refind, local_mapping, FusionReport, MappingReport};
 pub use system::{FrameFeatures, FusionTotals, StageStats, System, TrackingTotals};
 pub use tracking::Bridge;
