@@ -59,6 +59,18 @@ class TrackResult:
     keyframe: bool
 
 
+def _track_result(t_ns: int, core: tuple[NDArray[np.float64], str, int, bool]) -> TrackResult:
+    """A :class:`TrackResult` from the core's (pose, state, inliers, keyframe) tuple."""
+    pose, state, inliers, keyframe = core
+    return TrackResult(
+        t_ns=int(t_ns),
+        pose=pose,
+        state=state,  # type: ignore[arg-type]
+        inliers=inliers,
+        keyframe=keyframe,
+    )
+
+
 @dataclass(frozen=True)
 class BridgeResult:
     """A bridge keyframe (:meth:`System.bridge`): its id, the map points re-matched by the
@@ -84,15 +96,9 @@ class System:
 
     def track(self, t_ns: int, left: FeatureSet, right: FeatureSet) -> TrackResult:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds."""
-        pose, state, inliers, keyframe = self._core.track(
-            int(t_ns), left.keypoints, left.descriptors, right.keypoints, right.descriptors
-        )
-        return TrackResult(
-            t_ns=int(t_ns),
-            pose=pose,
-            state=state,  # type: ignore[arg-type]
-            inliers=inliers,
-            keyframe=keyframe,
+        return _track_result(
+            t_ns,
+            self._core.track(int(t_ns), left.keypoints, left.descriptors, right.keypoints, right.descriptors),
         )
 
     def predict(self, t_ns: int) -> TrackResult:
@@ -103,14 +109,7 @@ class System:
         map from an extrapolated prediction (and a bridge keyframe may still be inserted at
         the last tracked frame). ``lost`` (nothing recorded) before initialisation or after a
         lost frame."""
-        pose, state, inliers, keyframe = self._core.predict(int(t_ns))
-        return TrackResult(
-            t_ns=int(t_ns),
-            pose=pose,
-            state=state,  # type: ignore[arg-type]
-            inliers=inliers,
-            keyframe=keyframe,
-        )
+        return _track_result(t_ns, self._core.predict(int(t_ns)))
 
     def bridge(
         self,

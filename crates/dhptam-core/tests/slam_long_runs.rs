@@ -52,6 +52,18 @@ fn run(frames: &[SyntheticFrame], calib_from: &SyntheticOptions, config: Config)
     (system, e)
 }
 
+/// A short, slow sequence (20 frames) run with the default configuration.
+fn short_run() -> System {
+    let o = SyntheticOptions {
+        landmarks: 800,
+        frames: 20,
+        turns: 0.02,
+        seed: 2,
+        ..Default::default()
+    };
+    run(&generate(&o), &o, Config::default()).0
+}
+
 #[test]
 fn culling_removes_redundant_keyframes_of_a_slow_sequence_and_keeps_the_map_consistent() {
     // A slow pan (3° over 60 frames) where every frame is made a keyframe: almost all of them
@@ -134,15 +146,7 @@ fn culling_removes_redundant_keyframes_of_a_slow_sequence_and_keeps_the_map_cons
 
 #[test]
 fn the_invariant_check_finds_dangling_ids() {
-    let o = SyntheticOptions {
-        landmarks: 800,
-        frames: 20,
-        turns: 0.02,
-        seed: 2,
-        ..Default::default()
-    };
-    let frames = generate(&o);
-    let (system, _) = run(&frames, &o, Config::default());
+    let system = short_run();
     let map = system.with_map(Map::clone);
     assert!(map.check_invariants().is_empty());
     let kf = *map.keyframes.keys().last().unwrap();
@@ -446,15 +450,7 @@ fn default_culling_stops_keyframe_growth_on_revisits_and_keeps_accuracy() {
 
 #[test]
 fn fused_point_redirects_are_compressed_dropped_with_their_point_and_pruned() {
-    let o = SyntheticOptions {
-        landmarks: 800,
-        frames: 20,
-        turns: 0.02,
-        seed: 2,
-        ..Default::default()
-    };
-    let frames = generate(&o);
-    let (system, _) = run(&frames, &o, Config::default());
+    let system = short_run();
     let mut map = system.with_map(Map::clone);
     map.replaced.clear();
     // Three points fused in a chain a → b → c.

@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use dhptam_core::geometry::Se3;
-use dhptam_core::slam::{FrameFeatures, StereoCalibration, System};
+use dhptam_core::slam::{FrameFeatures, StereoCalibration, System, TrackResult};
 use numpy::ndarray::{Array1, Array3};
 use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -49,6 +49,19 @@ fn pose_array<'py>(py: Python<'py>, pose: &Se3) -> Bound<'py, PyArray2<f64>> {
         .collect();
     // A 4×4 from fixed-size rows cannot fail.
     PyArray2::from_vec2(py, &rows).unwrap_or_else(|_| unreachable!())
+}
+
+/// A tracking result as Python receives it: (pose (4, 4) world_from_cam, state, inliers,
+/// keyframe inserted).
+type TrackTuple<'py> = (Bound<'py, PyArray2<f64>>, &'static str, usize, bool);
+
+fn track_tuple<'py>(py: Python<'py>, r: &TrackResult) -> TrackTuple<'py> {
+    (
+        pose_array(py, &r.world_from_cam),
+        r.state.as_str(),
+        r.inliers,
+        r.keyframe,
+    )
 }
 
 fn poses_arrays<'py>(
@@ -114,7 +127,7 @@ impl PySystem {
         left_descriptors: &Bound<'py, PyAny>,
         right_keypoints: &Bound<'py, PyAny>,
         right_descriptors: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArray2<f64>>, &'static str, usize, bool)> {
+    ) -> PyResult<TrackTuple<'py>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
@@ -131,30 +144,16 @@ impl PySystem {
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
-        Ok((
-            pose_array(py, &r.world_from_cam),
-            r.state.as_str(),
-            r.inliers,
-            r.keyframe,
-        ))
+        Ok(track_tuple(py, &r))
     }
 
     /// Moves the pose on to `t_ns` with the motion model instead of tracking (a flooded
     /// event window); returns (pose (4, 4) world_from_cam, state, 0, False).
-    fn predict<'py>(
-        &self,
-        py: Python<'py>,
-        t_ns: i64,
-    ) -> PyResult<(Bound<'py, PyArray2<f64>>, &'static str, usize, bool)> {
+    fn predict<'py>(&self, py: Python<'py>, t_ns: i64) -> PyResult<TrackTuple<'py>> {
         let r = py
             .detach_guarded("slam::predict", || self.with(|s| s.predict(t_ns)))?
             .py()?;
-        Ok((
-            pose_array(py, &r.world_from_cam),
-            r.state.as_str(),
-            r.inliers,
-            r.keyframe,
-        ))
+        Ok(track_tuple(py, &r))
     }
 
     /// Bridge keyframe at the last tracked frame `t_ns` (see `dhptam.System.bridge`):
