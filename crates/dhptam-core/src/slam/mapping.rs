@@ -11,11 +11,10 @@ use nalgebra::{Vector2, Vector3};
 use rayon::prelude::*;
 
 use super::map::Map;
-use super::tracking::{match_options, Grid};
+use super::tracking::{Grid, Projection};
 use super::{read_lock, write_lock, StereoCalibration};
 use crate::config::{MappingConfig, TrackingConfig, TriangulationConfig};
 use crate::error::Result;
-use crate::matching::best_two;
 use crate::place::PlaceDatabase;
 use crate::solver::{
     solve_stereo_ba, BaKeyframe, BaObservation, LmOptions, Loss, StereoBaOptions, Termination,
@@ -533,18 +532,20 @@ fn project_into(
         return Vec::new();
     };
     let descriptors = t.descriptors.view();
-    let options = match_options(tracking, descriptors.kind());
     let grid = Grid::new(
         &t.keypoints,
         calib.width,
         calib.height,
         tracking.cell_px as f32,
     );
-    let cam_from_world = t.world_from_cam.inverse();
-    let centre = t.centre();
-    let cos_max = tracking.max_view_angle_deg.to_radians().cos();
-    let (w, h) = (calib.width as f64, calib.height as f64);
-    let radius = cfg.fuse_radius_px as f32;
+    let projection = Projection::new(
+        &t.world_from_cam.inverse(),
+        calib,
+        tracking,
+        tri,
+        descriptors.kind(),
+        cfg.fuse_radius_px as f32,
+    );
     points
         .par_iter()
         .filter_map(|&id| {
@@ -552,31 +553,13 @@ fn project_into(
             if p.observations.contains_key(&target) {
                 return None;
             }
-            let pc = cam_from_world.transform_point(&p.position);
-            if pc.z < tri.min_depth_m || pc.z > tri.max_depth_m {
-                return None;
-            }
-            let u = calib.fx * pc.x / pc.z + calib.cx;
-            let v = calib.fy * pc.y / pc.z + calib.cy;
-            if !(u >= 0.0 && v >= 0.0 && u < w && v < h) {
-                return None;
-            }
-            let ray = p.position - centre;
-            if ray.dot(&p.normal) < cos_max * ray.norm() {
-                return None;
-            }
-            let ur = (u - calib.fx * calib.baseline_m / pc.z) as f32;
-            let (u, v) = (u as f32, v as f32);
-            let candidates = grid.near(&t.keypoints, u, v, radius).filter(|&i| {
-                let m = t.u_right[i];
-                !m.is_finite() || (m - ur).abs() <= radius
-            });
-            let (i, best, second) = best_two(p.descriptor.view(), descriptors, candidates)?;
-            (best <= options.max_distance && best < options.ratio * second).then_some(Proposal {
+            let (feature, distance) =
+                projection.best_match(p, &t.keypoints, &t.u_right, descriptors, &grid)?;
+            Some(Proposal {
                 keyframe: target,
-                feature: i,
+                feature,
                 point: id,
-                distance: best,
+                distance,
             })
         })
         .collect()

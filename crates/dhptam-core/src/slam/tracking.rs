@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix3, Vector2, Vector3};
 use rayon::prelude::*;
 
 use super::map::{FrameRecord, Keyframe, Map, MapPoint};
@@ -147,6 +147,82 @@ impl Grid {
     }
 }
 
+/// Projection of map points into one rectified stereo view for a guided search: the view's
+/// pose, the frustum (image bounds, depth range of `[triangulation]`), the viewing-angle limit
+/// and the descriptor thresholds of `[tracking]`, and the search radius in pixels.
+pub(crate) struct Projection<'a> {
+    calib: &'a StereoCalibration,
+    tri: &'a TriangulationConfig,
+    rotation: Matrix3<f64>,
+    translation: Vector3<f64>,
+    centre: Vector3<f64>,
+    cos_max: f64,
+    options: MatchOptions,
+    radius: f32,
+}
+
+impl<'a> Projection<'a> {
+    /// The projection into a view at `cam_from_world` whose descriptors are of `kind`.
+    pub(crate) fn new(
+        cam_from_world: &Se3,
+        calib: &'a StereoCalibration,
+        cfg: &TrackingConfig,
+        tri: &'a TriangulationConfig,
+        kind: DescriptorKind,
+        radius: f32,
+    ) -> Self {
+        Self {
+            calib,
+            tri,
+            rotation: cam_from_world.rotation.matrix(),
+            translation: cam_from_world.translation,
+            centre: cam_from_world.inverse().translation,
+            cos_max: cfg.max_view_angle_deg.to_radians().cos(),
+            options: match_options(cfg, kind),
+            radius,
+        }
+    }
+
+    /// The keypoint (index, descriptor distance) that point `p` matches in the view
+    /// (`keypoints`, their right-image columns `u_right` (NaN: no stereo match), `descriptors`,
+    /// `grid` over the keypoints): `p` must project inside the frustum and be seen within the
+    /// viewing-angle limit of its normal; candidates lie within the radius of the projection
+    /// (and of the predicted right column where they have one); the best must pass the
+    /// distance threshold and the ratio test against the second best.
+    pub(crate) fn best_match(
+        &self,
+        p: &MapPoint,
+        keypoints: &[[f32; 2]],
+        u_right: &[f32],
+        descriptors: Descriptors<'_>,
+        grid: &Grid,
+    ) -> Option<(usize, f32)> {
+        let (calib, radius) = (self.calib, self.radius);
+        let pc = self.rotation * p.position + self.translation;
+        if pc.z < self.tri.min_depth_m || pc.z > self.tri.max_depth_m {
+            return None;
+        }
+        let u = calib.fx * pc.x / pc.z + calib.cx;
+        let v = calib.fy * pc.y / pc.z + calib.cy;
+        if !(u >= 0.0 && v >= 0.0 && u < calib.width as f64 && v < calib.height as f64) {
+            return None;
+        }
+        let ray = p.position - self.centre;
+        if ray.dot(&p.normal) < self.cos_max * ray.norm() {
+            return None;
+        }
+        let ur = (u - calib.fx * calib.baseline_m / pc.z) as f32;
+        let (u, v) = (u as f32, v as f32);
+        let candidates = grid.near(keypoints, u, v, radius).filter(|&i| {
+            let m = u_right[i];
+            !m.is_finite() || (m - ur).abs() <= radius
+        });
+        let (i, best, second) = best_two(p.descriptor.view(), descriptors, candidates)?;
+        (best <= self.options.max_distance && best < self.options.ratio * second)
+            .then_some((i, best))
+    }
+}
+
 /// Projection-guided search: every candidate map point projected with `cam_from_world`
 /// (frustum and viewing-angle culled) is matched to the nearest-in-descriptor keypoint within
 /// `radius`; each keypoint keeps its best point. Returns per keypoint (point id, distance).
@@ -162,37 +238,26 @@ pub fn search_projected(
     cam_from_world: &Se3,
     radius: f32,
 ) -> Vec<Option<(u64, f32)>> {
-    let options = match_options(cfg, frame.descriptors.kind());
-    let rotation = cam_from_world.rotation.matrix();
-    let t = cam_from_world.translation;
-    let centre = cam_from_world.inverse().translation;
-    let cos_max = cfg.max_view_angle_deg.to_radians().cos();
-    let (w, h) = (calib.width as f64, calib.height as f64);
+    let projection = Projection::new(
+        cam_from_world,
+        calib,
+        cfg,
+        tri,
+        frame.descriptors.kind(),
+        radius,
+    );
     let found: Vec<Option<(usize, u64, f32)>> = points
         .par_iter()
         .map(|&id| {
             let p = map.points.get(&id)?;
-            let pc = rotation * p.position + t;
-            if pc.z < tri.min_depth_m || pc.z > tri.max_depth_m {
-                return None;
-            }
-            let u = calib.fx * pc.x / pc.z + calib.cx;
-            let v = calib.fy * pc.y / pc.z + calib.cy;
-            if !(u >= 0.0 && v >= 0.0 && u < w && v < h) {
-                return None;
-            }
-            let ray = p.position - centre;
-            if ray.dot(&p.normal) < cos_max * ray.norm() {
-                return None;
-            }
-            let ur = (u - calib.fx * calib.baseline_m / pc.z) as f32;
-            let (u, v) = (u as f32, v as f32);
-            let candidates = grid.near(&frame.keypoints, u, v, radius).filter(|&i| {
-                let m = frame.u_right[i];
-                !m.is_finite() || (m - ur).abs() <= radius
-            });
-            let (i, best, second) = best_two(p.descriptor.view(), frame.descriptors, candidates)?;
-            (best <= options.max_distance && best < options.ratio * second).then_some((i, id, best))
+            let (i, d) = projection.best_match(
+                p,
+                &frame.keypoints,
+                &frame.u_right,
+                frame.descriptors,
+                grid,
+            )?;
+            Some((i, id, d))
         })
         .collect();
     let mut per_feature: Vec<Option<(u64, f32)>> = vec![None; frame.keypoints.len()];
