@@ -386,9 +386,10 @@ fn laps(
 
 #[test]
 fn default_culling_stops_keyframe_growth_on_revisits_and_keeps_accuracy() {
-    // Two turns of the circle (4° per frame): the 2nd turn revisits the places of the first. With the default policy the keyframe count must stop growing
-    // after the first turn (without culling it triples) and the trajectory must stay as
-    // accurate as without culling.
+    // Two turns of the circle (4° per frame): the 2nd turn revisits the places of the first.
+    // With the default policy the keyframe count must stop growing after the first turn
+    // (without culling it triples) and the trajectory must stay as accurate as without
+    // culling.
     let o = SyntheticOptions {
         landmarks: 600,
         frames: 180,
