@@ -132,15 +132,7 @@ impl PySystem {
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
-        let strided = |_| input_error("keypoints", "a C-contiguous array", "a strided view");
-        let left = FrameFeatures {
-            keypoints: lk.as_slice().map_err(strided)?,
-            descriptors: ld.view()?,
-        };
-        let right = FrameFeatures {
-            keypoints: rk.as_slice().map_err(strided)?,
-            descriptors: rd.view()?,
-        };
+        let (left, right) = (features(&lk, &ld)?, features(&rk, &rd)?);
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;

@@ -302,27 +302,9 @@ pub fn e3ct_into(
     out: &mut [f32],
 ) -> Result<()> {
     params.check()?;
-    accumulate(
-        events, width, height, t_start_ns, t_end_ns, params, workspace, out,
-    )
-}
-
-/// The two-pass accumulation of [`e3ct_into`] (its parameters checked).
-///
-/// The events are validated against the `width × height` image and the window (see
-/// [`EventSlice::validate`]) block by block inside the first pass, while each block is in
-/// cache; an invalid event is reported, naming the first one, before the output is touched.
-#[allow(clippy::too_many_arguments)]
-fn accumulate(
-    events: &EventSlice<'_>,
-    width: u32,
-    height: u32,
-    t_start_ns: i64,
-    t_end_ns: i64,
-    params: &E3ctParams,
-    workspace: &mut E3ctWorkspace,
-    out: &mut [f32],
-) -> Result<()> {
+    // Two passes. The events are validated against the `width × height` image and the window
+    // (see [`EventSlice::validate`]) block by block inside the first pass, while each block is
+    // in cache; an invalid event is reported, naming the first one, before `out` is touched.
     let (raw_w, raw_h) = (width, height);
     check_frame(raw_w, raw_h, t_start_ns, t_end_ns)?;
     let (w, h) = (width as usize, height as usize);
