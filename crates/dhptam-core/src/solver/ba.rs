@@ -381,11 +381,9 @@ impl LeastSquares for BundleAdjustment {
                         continue;
                     }
                     let (pix, a, b) = cam.project_with_jacobians(&points[j]);
-                    let r = pix - obs_pixel[k];
-                    let (r, a, w) = add_observation(loss, r, a, b, v, gp);
-                    wt[local] = w;
+                    res[local] = pix - obs_pixel[k];
                     jc[local] = a;
-                    res[local] = r;
+                    wt[local] = add_observation(loss, &mut res[local], &mut jc[local], b, v, gp);
                 }
             });
         schur.accumulate_cameras(&self.jc, &self.residual)

@@ -110,6 +110,7 @@ impl Corrector {
 
     /// Corrects the Jacobian of one parameter block, J ← √ρ' (J − (α/s) r (rᵀJ)), for the
     /// block's residual `r` as it was before [`Corrector::correct_residual`].
+    #[inline]
     pub fn correct_jacobian<const R: usize, const N: usize>(
         &self,
         r: &SVector<f64, R>,
@@ -123,6 +124,7 @@ impl Corrector {
     }
 
     /// Corrects the residual, r ← r √ρ' / (1 − α). Call after the Jacobians are corrected.
+    #[inline]
     pub fn correct_residual<const R: usize>(&self, r: &mut SVector<f64, R>) {
         *r *= self.residual_scale;
     }

@@ -292,10 +292,9 @@ impl LeastSquares for StereoBa<'_> {
                         wt[local] = M36::zeros();
                         continue;
                     };
-                    let (r, a, w) = add_observation(loss, r, a, b, v, gp);
-                    wt[local] = w;
-                    jp[local] = a;
                     res[local] = r;
+                    jp[local] = a;
+                    wt[local] = add_observation(loss, &mut res[local], &mut jp[local], b, v, gp);
                 }
             });
         schur.accumulate_cameras(&self.jp, &self.residual)
