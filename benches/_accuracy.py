@@ -19,6 +19,33 @@ def evaluated_run(sequence: Path, out: Path, reference: Any, **run_args: Any) ->
     return result, ev
 
 
+def choices(parser: Any, text: str, allowed: Any, what: str) -> list[str]:
+    """The comma-separated items of ``text``, each checked against ``allowed`` (an argparse
+    error naming ``what`` otherwise)."""
+    items = [item for item in text.split(",") if item]
+    for item in items:
+        if item not in allowed:
+            parser.error(f"unknown {what} {item!r}; choose from {', '.join(allowed)}")
+    return items
+
+
+TABLE_HEAD = [
+    "| sequence | mode | frames | tracked | coverage | path [m] | ATE RMSE [m] | ATE [% of path] |",
+    "|---|---|---|---|---|---|---|---|",
+]
+
+
+def table_row(name: str, mode: str, result: Any, ev: Any) -> str:
+    """One row under :data:`TABLE_HEAD` for a run and its evaluation (also echoed to stderr,
+    so a long bench shows its progress)."""
+    row = (
+        f"| {name} | {mode} | {result.frames} | {result.tracked} | {100 * ev.coverage:.0f} % "
+        f"| {ev.path_length_m:.3f} | {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} |"
+    )
+    print(row, file=sys.stderr)
+    return row
+
+
 def finish_table(lines: list[str], out: Path) -> int:
     """Writes the table atomically to ``out/report.md`` and to stdout; the exit status."""
     from dhptam.trajectory import atomic_write_text

@@ -22,7 +22,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import evaluated_run, finish_table
+from _accuracy import choices, evaluated_run, finish_table
 
 
 def main() -> int:
@@ -43,14 +43,8 @@ def main() -> int:
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
 
-    modes = [m for m in args.modes.split(",") if m]
-    backends = [b for b in args.backend.split(",") if b]
-    for m in modes:
-        if m not in MODES:
-            parser.error(f"unknown mode {m!r}; choose from {', '.join(MODES)}")
-    for b in backends:
-        if b not in ("threaded", "sync"):
-            parser.error(f"unknown back-end {b!r}; choose threaded and/or sync")
+    modes = choices(parser, args.modes, MODES, "mode")
+    backends = choices(parser, args.backend, ("threaded", "sync"), "back-end")
     bridges = {"on": [True], "off": [False], "both": [True, False]}[args.bridge]
     floods = {"on": [True], "off": [False], "both": [True, False]}[args.flood]
     lines = [

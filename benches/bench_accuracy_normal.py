@@ -22,7 +22,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import evaluated_run, finish_table
+from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, table_row
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -50,10 +50,7 @@ def main() -> int:
     from dhptam.run import MODES
     from dhptam.sim import simulate
 
-    modes = [m for m in args.modes.split(",") if m]
-    for m in modes:
-        if m not in MODES:
-            parser.error(f"unknown mode {m!r}; choose from {', '.join(MODES)}")
+    modes = choices(parser, args.modes, MODES, "mode")
     if not args.trajectories.is_dir():
         parser.error(f"trajectory folder {args.trajectories} does not exist (set DHPTAM_SHARED)")
     files = sorted(p for p in args.trajectories.iterdir() if p.suffix in (".csv", ".tum", ".txt"))
@@ -66,8 +63,7 @@ def main() -> int:
         f"lighting), seed {args.seed}; {'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
-        "| trajectory | mode | frames | tracked | coverage | path [m] | ATE RMSE [m] | ATE [% of path] |",
-        "|---|---|---|---|---|---|---|---|",
+        *TABLE_HEAD,
     ]
     for path in files:
         name = path.stem
@@ -87,11 +83,7 @@ def main() -> int:
         for mode in modes:
             out = args.out / name / mode
             result, ev = evaluated_run(sequence, out, reference, mode=mode, threaded=not args.sync)
-            lines.append(
-                f"| {path.stem} | {mode} | {result.frames} | {result.tracked} | {100 * ev.coverage:.0f} % "
-                f"| {ev.path_length_m:.3f} | {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} |"
-            )
-            print(lines[-1], file=sys.stderr)
+            lines.append(table_row(name, mode, result, ev))
     return finish_table(lines, args.out)
 
 
