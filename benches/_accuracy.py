@@ -9,11 +9,15 @@ from typing import Any
 
 def evaluated_run(sequence: Path, out: Path, reference: Any, **run_args: Any) -> tuple[Any, Any]:
     """``dhptam.run`` on ``sequence`` into ``out``, then the SE(3)-aligned evaluation of its
-    left-frame-camera trajectory against ``reference`` (also written into ``out``)."""
+    left-frame-camera trajectory against ``reference`` (also written into ``out``); the
+    evaluation is ``None`` when the run has no pose at all (no usable input, e.g. `frames` in
+    the dark)."""
     from dhptam.eval import evaluate, load_trajectory, write_result
     from dhptam.run import run
 
     result = run(sequence, out, progress=False, **run_args)
+    if result.tracked == 0:
+        return result, None
     ev = evaluate(load_trajectory(result.files["trajectory_frame_left"]), reference, align="se3")
     write_result(ev, out, name="eval")
     return result, ev
@@ -37,7 +41,11 @@ TABLE_HEAD = [
 
 def table_row(name: str, mode: str, result: Any, ev: Any) -> str:
     """One row under :data:`TABLE_HEAD` for a run and its evaluation (also echoed to stderr,
-    so a long bench shows its progress)."""
+    so a long bench shows its progress); dashes for a run without poses."""
+    if ev is None:
+        row = f"| {name} | {mode} | {result.frames} | 0 | 0 % | – | – | – |"
+        print(row, file=sys.stderr)
+        return row
     row = (
         f"| {name} | {mode} | {result.frames} | {result.tracked} | {100 * ev.coverage:.0f} % "
         f"| {ev.path_length_m:.3f} | {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} |"
