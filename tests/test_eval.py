@@ -153,10 +153,39 @@ def test_too_few_matched_poses_is_an_error() -> None:
         evaluate(late, ref)
     with pytest.raises(InputError, match="align"):
         evaluate(ref, ref, align="se2")
+    still = ref.rows.copy()
+    still[:, :3] = 0.0  # one point: no scale can be determined
+    with pytest.raises(NumericalError, match="sim3 alignment needs estimate positions"):
+        evaluate(Trajectory(ref.t_ns, still, "still.tum"), Trajectory(ref.t_ns, still), align="sim3")
+
+
+def test_positions_on_one_line_are_aligned_by_the_orientations() -> None:
+    """A back-and-forth translation: Umeyama cannot fix the rotation about the line, the
+    orientations can; a rigidly moved (and for sim3 scaled) copy aligns back exactly, and an
+    error along the line is still measured."""
+    ref = _circle(40)
     line = ref.rows.copy()
-    line[:, 1:3] = 0.0  # every position on the x axis: no rotation can be determined
-    with pytest.raises(NumericalError, match="Umeyama se3 alignment failed"):
-        evaluate(Trajectory(ref.t_ns, line, "line.tum"), Trajectory(ref.t_ns, line))
+    line[:, 0] = np.sin(np.linspace(0.0, 6.0, len(line)))  # back and forth along x
+    line[:, 1:3] = 0.0
+    ref_line = Trajectory(ref.t_ns, line, "line.tum")
+    moved = SE3(SO3.exp([0.2, -0.1, 0.7]), [3.0, -1.0, 0.5])
+    est = np.einsum("ij,njk->nik", moved.matrix(), rows_to_matrices(line))
+    rigid = evaluate(Trajectory.from_poses(ref.t_ns, est), ref_line, align="se3")
+    assert rigid.aligned_by == "orientations"
+    assert rigid.ate_rmse_m < 1e-9
+    assert rigid.rotation_deg == pytest.approx(np.degrees(np.linalg.norm([0.2, -0.1, 0.7])), rel=1e-9)
+    scaled = est.copy()
+    scaled[:, :3, 3] *= 0.37
+    sim3 = evaluate(Trajectory.from_poses(ref.t_ns, scaled), ref_line, align="sim3")
+    assert sim3.ate_rmse_m < 1e-9 and sim3.scale == pytest.approx(1 / 0.37, rel=1e-9)
+    stretched = est.copy()
+    stretched[:, :3, 3] += (
+        0.05 * (moved.matrix()[:3, :3] @ np.array([1.0, 0.0, 0.0])) * np.sign(line[:, :1])
+    )  # 5 cm off along the line, away from the middle
+    off = evaluate(Trajectory.from_poses(ref.t_ns, stretched), ref_line, align="se3")
+    assert off.aligned_by == "orientations"
+    assert 0.03 < off.ate_rmse_m < 0.05
+    assert evaluate(ref, ref).aligned_by == "positions"
 
 
 def test_cli_eval_writes_json_and_plots(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -187,7 +187,7 @@ def _eval_command(args: argparse.Namespace) -> int:
         f"({result.ate_percent_of_path:.2f} % of {result.path_length_m:.2f} m), "
         f"RPE RMSE {result.rpe.get('rmse', float('nan')):.4f} m, coverage {100 * result.coverage:.1f} %, "
         f"{result.poses_matched}/{result.poses_estimate} poses, {args.align} alignment "
-        f"(scale {result.scale:.4f})\n"
+        f"by the {result.aligned_by} (scale {result.scale:.4f})\n"
     )
     sys.stdout.write(f"wrote {paths['json']}\n")
     return 0

@@ -8,7 +8,11 @@ Procedure (what :func:`evaluate` does, in order):
    200 Hz reference from adding up to 2.5 ms of motion to every error.
 2. evo aligns the estimate to the reference with Umeyama: ``se3`` (rotation + translation,
    for stereo) or ``sim3`` (plus scale). Estimates are never smoothed or shifted otherwise
-   (SPEC-NOTES §6).
+   (SPEC-NOTES §6). When the matched positions cannot fix the rotation (all on one line, e.g.
+   a back-and-forth translation, or one point), the rotation comes from the orientations
+   instead: the rotation closest to the mean of ref_R·est_Rᵀ over the matched poses (chordal
+   mean, by SVD), then the translation (and the ``sim3`` scale) from the positions by least
+   squares. ``EvalResult.aligned_by`` says which (``"positions"`` or ``"orientations"``).
 3. evo computes APE on the translation part (ATE; its RMSE is the headline number) and RPE
    on the translation part between poses ``rpe_delta`` frames apart.
 4. Coverage is the fraction of the reference's time span covered by the estimate: the sum of
@@ -188,6 +192,9 @@ class EvalResult:
     errors_m: _F64 = field(repr=False, default_factory=lambda: np.empty(0))
     estimate_aligned_xyz: _F64 = field(repr=False, default_factory=lambda: np.empty((0, 3)))
     reference_xyz: _F64 = field(repr=False, default_factory=lambda: np.empty((0, 3)))
+    #: What fixed the alignment's rotation: ``"positions"`` (Umeyama) or ``"orientations"``
+    #: (positions on one line or point).
+    aligned_by: str = "positions"
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -205,6 +212,27 @@ def _evo_trajectory(t_ns: _I64, rows: _F64) -> Any:
         orientations_quat_wxyz=rows[:, [6, 3, 4, 5]].copy(),
         timestamps=t_ns.astype(np.float64) / _NS,
     )
+
+
+def _orientation_alignment(est: Any, ref: Any, with_scale: bool, what: str) -> tuple[_F64, _F64, float]:
+    """(R, t, s) with ref ≈ s·R·est + t where the positions alone cannot fix R: R is the
+    rotation nearest to Σ ref_Rᵢ·est_Rᵢᵀ (chordal mean), s and t least squares given R."""
+    ref_r = np.asarray([p[:3, :3] for p in ref.poses_se3])
+    est_r = np.asarray([p[:3, :3] for p in est.poses_se3])
+    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", ref_r, est_r))
+    rotation = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    e, r = np.asarray(est.positions_xyz), np.asarray(ref.positions_xyz)
+    ce, cr = e.mean(axis=0), r.mean(axis=0)
+    scale = 1.0
+    if with_scale:
+        spread = float(((e - ce) ** 2).sum())
+        if spread == 0.0:
+            raise NumericalError(
+                f"{what}: sim3 alignment needs estimate positions that are not all one point",
+                field="estimate",
+            )
+        scale = float((((e - ce) @ rotation.T) * (r - cr)).sum() / spread)
+    return rotation, cr - scale * rotation @ ce, scale
 
 
 def evaluate(
@@ -236,16 +264,21 @@ def evaluate(
     t = estimate.t_ns[ok]
     ref = _evo_trajectory(t, ref_rows[ok])
     est = _evo_trajectory(t, estimate.rows[ok])
+    from evo.core import lie_algebra as lie
     from evo.core.geometry import GeometryException
 
+    aligned_by = "positions"
     try:
         rotation, translation, scale = est.align(ref, correct_scale=align == "sim3")
-    except GeometryException as err:
-        raise NumericalError(
-            f"{estimate.source or 'estimate'}: Umeyama {align} alignment failed ({err}); the matched "
-            "reference positions must not all lie on one line or point",
-            field="estimate",
-        ) from None
+    except GeometryException:
+        aligned_by = "orientations"
+        est = _evo_trajectory(t, estimate.rows[ok])
+        rotation, translation, scale = _orientation_alignment(
+            est, ref, align == "sim3", estimate.source or "estimate"
+        )
+        if align == "sim3":
+            est.scale(scale)
+        est.transform(lie.se3(rotation, translation))
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     ape_stats = {k: float(v) for k, v in ape.get_all_statistics().items()}
@@ -279,6 +312,7 @@ def evaluate(
         errors_m=np.asarray(ape.error, np.float64),
         estimate_aligned_xyz=np.asarray(est.positions_xyz),
         reference_xyz=np.asarray(ref.positions_xyz),
+        aligned_by=aligned_by,
     )
 
 
