@@ -11,7 +11,10 @@ truth (evo, SE(3) alignment, left frame camera). Prints a Markdown table for
 docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
-        [--out bench-accuracy] [--sync]
+        [--out bench-accuracy] [--sync] [--warp-depth tracked|plane|both]
+
+``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
+``"plane"`` in the same invocation (before/after figures from one run of the same code).
 """
 
 from __future__ import annotations
@@ -43,14 +46,23 @@ def main() -> int:
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy"))
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
+    parser.add_argument(
+        "--warp-depth",
+        default="tracked",
+        help='[fusion] warp_depth: "tracked", "plane" or "both" (the two in the same run)',
+    )
     args = parser.parse_args()
 
+    from dhptam import Config
     from dhptam.demo import GROUND_TRUTH, cache_dir
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
     from dhptam.sim import simulate
 
     modes = [m for m in args.modes.split(",") if m]
+    if args.warp_depth not in ("tracked", "plane", "both"):
+        parser.error(f"--warp-depth must be tracked, plane or both, got {args.warp_depth!r}")
+    warps = ["tracked", "plane"] if args.warp_depth == "both" else [args.warp_depth]
     for m in modes:
         if m not in MODES:
             parser.error(f"unknown mode {m!r}; choose from {', '.join(MODES)}")
@@ -66,8 +78,9 @@ def main() -> int:
         f"lighting), seed {args.seed}; {'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
-        "| trajectory | mode | frames | tracked | coverage | path [m] | ATE RMSE [m] | ATE [% of path] |",
-        "|---|---|---|---|---|---|---|---|",
+        "| trajectory | mode | warp depth | frames | tracked | coverage | path [m] | ATE RMSE [m] "
+        "| ATE [% of path] |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for path in files:
         name = path.stem
@@ -85,13 +98,20 @@ def main() -> int:
             )
         reference = load_trajectory(sequence / GROUND_TRUTH)
         for mode in modes:
-            out = args.out / name / mode
-            result, ev = evaluated_run(sequence, out, reference, mode=mode, threaded=not args.sync)
-            lines.append(
-                f"| {path.stem} | {mode} | {result.frames} | {result.tracked} | {100 * ev.coverage:.0f} % "
-                f"| {ev.path_length_m:.3f} | {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} |"
-            )
-            print(lines[-1], file=sys.stderr)
+            # The warp depth only matters where events are warped.
+            for warp in warps if mode != "frames" else warps[:1]:
+                config = Config.from_toml(f'[fusion]\nwarp_depth = "{warp}"')
+                out = args.out / name / (mode if len(warps) == 1 else f"{mode}-{warp}")
+                result, ev = evaluated_run(
+                    sequence, out, reference, mode=mode, config=config, threaded=not args.sync
+                )
+                shown = warp if mode != "frames" else "–"
+                lines.append(
+                    f"| {path.stem} | {mode} | {shown} | {result.frames} | {result.tracked} "
+                    f"| {100 * ev.coverage:.0f} % | {ev.path_length_m:.3f} | {ev.ate_rmse_m:.4f} "
+                    f"| {ev.ate_percent_of_path:.2f} |"
+                )
+                print(lines[-1], file=sys.stderr)
     return finish_table(lines, args.out)
 
 

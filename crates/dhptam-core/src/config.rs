@@ -244,6 +244,18 @@ config_section! {
         /// next clean frame against the map; bridges at a fusion-mode switch span the flood.
         /// Off: flood frames are tracked like any other (still flagged in `frames.csv`).
         flood_predict: bool = true,
+        /// Depth of the event→frame warp plane during `dhptam run` (issue 8): "plane" warps
+        /// every frame through `plane_depth_m`; "tracked" warps frame k through a plane at
+        /// the median depth of the map points frame k−1 was tracked with
+        /// (`System::tracked_depth`), falling back to `plane_depth_m` before initialisation
+        /// and after a lost frame.
+        warp_depth: String = "tracked".to_string(),
+        /// Bin width of the tracked warp depth, in pixels of event→frame parallax: the depth
+        /// is rounded in inverse depth to bins this many pixels of parallax wide (at the
+        /// frame camera's focal length and the event-to-frame offset), so the warp maps are
+        /// reused while the scene depth drifts; the rounding moves warped pixels by at most
+        /// half of it. 0: no rounding.
+        warp_depth_step_px: f64 = 0.5,
     }
 }
 
@@ -812,6 +824,18 @@ impl FusionConfig {
             self.flood_history >= 1,
             "at least 1 window",
             self.flood_history,
+        )?;
+        check(
+            "fusion.warp_depth",
+            ["tracked", "plane"].contains(&self.warp_depth.as_str()),
+            "\"tracked\" or \"plane\"",
+            format!("{:?}", self.warp_depth),
+        )?;
+        check(
+            "fusion.warp_depth_step_px",
+            self.warp_depth_step_px.is_finite() && self.warp_depth_step_px >= 0.0,
+            "0 (no rounding) or a positive parallax in pixels",
+            self.warp_depth_step_px,
         )
     }
 }
