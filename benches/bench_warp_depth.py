@@ -21,6 +21,7 @@ sides and the sampled frames) and writes it to ``--out/report.md``.
 
     python benches/bench_warp_depth.py [--normal-duration 4] [--demo-seeds 0] [--step 5]
         [--out bench-warp-depth]
+    python benches/bench_warp_depth.py --cost 50 [--demo-seeds 0]   # what the tracked depth costs
 """
 
 from __future__ import annotations
@@ -118,6 +119,60 @@ def _distances(
     return out
 
 
+def _cost(sequence: Path, repeats: int, out: Path) -> list[str]:
+    """What the tracked warp depth costs on ``sequence``: ``Frontend.finish`` (warp, β, blend)
+    with the warp map cached against a depth that changes bin every call (the map rebuilt),
+    and whole threaded ``fusion`` runs with ``warp_depth = "tracked"`` and ``"plane"``,
+    interleaved so that other load on the machine hits both alike."""
+    import time
+
+    from dhptam import _core
+    from dhptam.datasets import load_tumvie
+    from dhptam.frontend import Frontend
+    from dhptam.run import run
+
+    lines = []
+    with load_tumvie(sequence) as seq:
+        fe = Frontend(seq, "fusion", prefetch=0)
+        prepared = fe.prepare(10)
+        step = fe.warp_depth_step_px / fe.warp_parallax_px
+        # Three bins in turn: six (depth, side) maps, more than the binding's cache keeps (4).
+        bins = [1.0 / (b * step) for b in (4, 5, 6)]
+        far = bins[0]
+        fe.finish(prepared, far)
+        timings: dict[str, list[float]] = {
+            "same depth (map cached)": [],
+            "new bin every call (map rebuilt)": [],
+        }
+        for i in range(repeats):
+            for name, depth in (
+                ("same depth (map cached)", far),
+                ("new bin every call (map rebuilt)", bins[1 + i % 2]),
+            ):
+                if name.startswith("same"):
+                    fe.finish(prepared, far)  # make sure the cached map is the one used
+                t0 = time.perf_counter()
+                fe.finish(prepared, depth)
+                timings[name].append(time.perf_counter() - t0)
+        size = f"{fe.frame_rect.width}×{fe.frame_rect.height}"
+        for name, v in timings.items():
+            lines.append(
+                f"| {sequence.name} ({size}) | `Frontend.finish`, {name} | {1e3 * np.median(v):.2f} ms |"
+            )
+    fps: dict[str, list[float]] = {"tracked": [], "plane": []}
+    for i in range(repeats // 10 or 1):
+        for warp in ("tracked", "plane"):
+            config = _core.Config.from_toml(f'[fusion]\nwarp_depth = "{warp}"')
+            r = run(sequence, out / f"cost-{warp}-{i}", mode="fusion", config=config, progress=False)
+            fps[warp].append(r.fps)
+    for warp, v in fps.items():
+        lines.append(
+            f'| {sequence.name} | threaded `dhptam run`, `warp_depth = "{warp}"` | '
+            f"{np.median(v):.1f} fps (runs: {', '.join(f'{x:.1f}' for x in v)}) |"
+        )
+    return lines
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -128,12 +183,30 @@ def main() -> int:
     parser.add_argument("--step", type=int, default=5, help="every this many frames (default 5)")
     parser.add_argument("--max-pixels", type=int, default=3000, help="event pixels per window and side")
     parser.add_argument("--out", type=Path, default=Path("bench-warp-depth"))
+    parser.add_argument(
+        "--cost",
+        type=int,
+        default=0,
+        metavar="N",
+        help="instead: time the warp with and without a map rebuild (N calls each) and N/10 "
+        "interleaved threaded runs per setting on the demo sequence of the first --demo-seeds",
+    )
     args = parser.parse_args()
 
     from dhptam.datasets import load_tumvie
     from dhptam.demo import cache_dir, demo_sequence
     from dhptam.frontend import Frontend
 
+    if args.cost > 0:
+        seed = int(args.demo_seeds.split(",")[0] or 0)
+        lines = [
+            f"{platform.node()}, {os.cpu_count()} CPUs.",
+            "",
+            "| sequence | what | median |",
+            "|---|---|---|",
+            *_cost(demo_sequence(seed=seed, progress=False), args.cost, args.out),
+        ]
+        return finish_table(lines, args.out)
     root = Path(os.environ.get("DHPTAM_SHARED", REPO.parent / "shared")) / "data" / "trajectories"
     jobs: list[tuple[str, Path, Any]] = []
     normal = cache_dir() / "sequences" / f"normal-seed{args.normal_seed}-{args.normal_duration:g}s"

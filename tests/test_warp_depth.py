@@ -95,7 +95,7 @@ def test_bad_warp_depth_settings_are_config_errors() -> None:
         _core.Config.from_toml('[fusion]\nwarp_depth = "nearest"')
     with pytest.raises(dhptam.ConfigError, match=r"fusion\.warp_depth_step_px"):
         _core.Config.from_toml("[fusion]\nwarp_depth_step_px = -1.0")
-    assert _core.Config().to_dict()["fusion"]["warp_depth"] == "tracked"
+    assert _core.Config().to_dict()["fusion"]["warp_depth"] == "plane"  # chosen by measurement
 
 
 def test_quantised_depth_rounds_inverse_depth_to_bins_of_parallax(sim_tiny: Path) -> None:
@@ -114,6 +114,14 @@ def test_quantised_depth_rounds_inverse_depth_to_bins_of_parallax(sim_tiny: Path
         assert moved.max() <= step / 2 + 1e-9, moved.max()
         # ... and a slowly drifting depth keeps its bin (so the warp map is reused).
         assert len(np.unique(rounded)) < len(depths) / 4
+        # Hysteresis: the previous frame's depth is kept while the new one is within one bin.
+        current = fe.quantised_depth(2.0)
+        within = 1.0 / (1.0 / current + 0.9 * step / parallax)  # 0.9 bin of parallax nearer
+        beyond = 1.0 / (1.0 / current + 1.6 * step / parallax)
+        assert fe.quantised_depth(within) != current  # rounds to the next bin on its own ...
+        assert fe.quantised_depth(within, current) == current  # ... but is held
+        assert fe.quantised_depth(beyond, current) == fe.quantised_depth(beyond) < current
+        assert fe.quantised_depth(None, current) == fe.plane_depth_m  # lost: the configured plane
         fe.warp_depth_step_px = 0.0
         assert fe.quantised_depth(1.234) == 1.234
         frames = Frontend(seq, "frames", prefetch=0)

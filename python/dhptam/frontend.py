@@ -28,8 +28,12 @@ homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM o
 well-exposed frame pair. Infinity is the default because nothing about the scene is known before tracking
 starts, and it is exact for distant scenes; its error for a point at depth z is
 ``f · b / z`` pixels with ``b`` the event-to-frame camera offset (a few cm on TUM-VIE-like
-rigs). The caller can set :attr:`Frontend.plane_depth_m` at any time, e.g. to the median depth
-of the tracked map points; the next frame processed uses it.
+rigs; :attr:`Frontend.warp_parallax_px` is ``f · b``). The caller can set
+:attr:`Frontend.plane_depth_m` at any time (the next frame processed uses it), or split a frame
+into :meth:`Frontend.prepare` (frames, E3CT: no depth needed) and :meth:`Frontend.finish`
+(warp through a given depth, β, blend). ``dhptam run`` with ``[fusion] warp_depth =
+"tracked"`` does the latter with the median depth of the map points the previous frame was
+tracked with, rounded by :meth:`Frontend.quantised_depth` so the warp maps are reused.
 
 A background thread runs ``prefetch`` frames ahead through a bounded queue, so the front-end of
 frame k+1 overlaps the consumer's tracking of frame k; the Rust kernels release the GIL.
@@ -550,17 +554,24 @@ class Frontend:
             for side in ("left", "right")
         )
 
-    def quantised_depth(self, depth_m: float | None) -> float:
+    def quantised_depth(self, depth_m: float | None, current: float | None = None) -> float:
         """``depth_m`` rounded to the inverse-depth bins of ``[fusion] warp_depth_step_px``
         (bin width ``step_px / warp_parallax_px`` in 1/m), so consecutive frames share a warp
         map while the scene depth drifts; ``None``, 0 or a non-finite depth give the
         configured ``plane_depth_m``. Depths beyond ``2 · warp_parallax_px / step_px`` metres
-        round to bin 0: infinity (their parallax is under half a bin)."""
+        round to bin 0: infinity (their parallax is under half a bin).
+
+        With ``current`` (the depth the previous frame was warped through, > 0) the warp
+        keeps ``current`` while ``depth_m``'s parallax is within one bin of it: a tracked
+        depth wavering at a bin edge does not make the event image jump back and forth."""
         if depth_m is None or not np.isfinite(depth_m) or depth_m <= 0.0:
             return self.plane_depth_m
         parallax = self.warp_parallax_px
         if self.warp_depth_step_px <= 0.0 or parallax <= 0.0:
             return float(depth_m)
+        if current is not None and current > 0.0:
+            if abs(parallax / depth_m - parallax / current) <= self.warp_depth_step_px:
+                return float(current)
         step = self.warp_depth_step_px / parallax  # inverse-depth bin width, 1/m
         bins = round((1.0 / depth_m) / step)
         return 0.0 if bins == 0 else float(1.0 / (bins * step))

@@ -12,8 +12,8 @@ others:
 
 Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
 seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inliers, β, fusion
-bias, stage times), ``timing.json`` (per stage statistics), ``config.toml`` (resolved) and
-``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
+bias, flood flag, bridge, depth ``warp_depth_m`` of the event→frame warp plane, stage times),
+``timing.json`` (per stage statistics), ``config.toml`` (resolved) and ``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
 a file; Ctrl-C or a failure mid-run still writes everything done so far.
 
 With ``viz="rerun"`` each tracked frame is also handed to a :class:`dhptam.viz.RerunSink`,
@@ -574,9 +574,14 @@ def _track_all(
         t0 = time.perf_counter()
         return frontend.prepare(index), time.perf_counter() - t0
 
+    # The depth the last frame was warped through (the quantisation keeps it while the tracked
+    # depth stays within one bin of it).
+    warped_at: list[float | None] = [None]
+
     def extract(item: tuple[Any, float]) -> tuple[Any, float, Any, Any, float, Any]:
         prepared, t_prepare = item
-        depth = frontend.quantised_depth(feed.wait(prepared.index))
+        depth = frontend.quantised_depth(feed.wait(prepared.index), warped_at[0])
+        warped_at[0] = depth
         t0 = time.perf_counter()
         frame = frontend.finish(prepared, depth)
         bridge = None if previous[0] is None else frontend.bridge_images(previous[0], frame)
