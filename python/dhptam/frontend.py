@@ -534,10 +534,6 @@ class Frontend:
             out[side] = warped
         return out
 
-    def _warped_events(self, t0: int, t1: int) -> tuple[dict[str, _F32], E3ctStats]:
-        tensors, stats = self._event_tensors(t0, t1)
-        return self._warp_tensors(tensors, stats.scales, self.plane_depth_m), stats
-
     # -- warp depth from the tracker (``[fusion] warp_depth``) ---------------------------------
 
     @property
@@ -569,9 +565,12 @@ class Frontend:
         parallax = self.warp_parallax_px
         if self.warp_depth_step_px <= 0.0 or parallax <= 0.0:
             return float(depth_m)
-        if current is not None and current > 0.0:
-            if abs(parallax / depth_m - parallax / current) <= self.warp_depth_step_px:
-                return float(current)
+        if (
+            current is not None
+            and current > 0.0
+            and abs(parallax / depth_m - parallax / current) <= self.warp_depth_step_px
+        ):
+            return float(current)
         step = self.warp_depth_step_px / parallax  # inverse-depth bin width, 1/m
         bins = round((1.0 / depth_m) / step)
         return 0.0 if bins == 0 else float(1.0 / (bins * step))

@@ -13,8 +13,9 @@ others:
 Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
 seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inliers, β, fusion
 bias, flood flag, bridge, depth ``warp_depth_m`` of the event→frame warp plane, stage times),
-``timing.json`` (per stage statistics), ``config.toml`` (resolved) and ``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
-a file; Ctrl-C or a failure mid-run still writes everything done so far.
+``timing.json`` (per stage statistics), ``config.toml`` (resolved) and ``run.log``. Each file
+is written to a temporary name and renamed, so a reader never sees half a file; Ctrl-C or a
+failure mid-run still writes everything done so far.
 
 With ``viz="rerun"`` each tracked frame is also handed to a :class:`dhptam.viz.RerunSink`,
 which streams ``recording.rrd`` as the run goes (the no-op :class:`dhptam.viz.VizSink`
@@ -516,7 +517,7 @@ class _DepthFeed:
 
     The tracking loop :meth:`publish`-es, after each frame, the median depth of the map points
     it was tracked with (``System.tracked_depth``; ``None`` when lost or not initialised); the
-    front-end thread :meth:`wait`-s for frame k−1's value before warping frame k, so a run
+    extraction thread :meth:`wait`-s for frame k−1's value before warping frame k, so a run
     gives the same images whatever the threads' timing. :meth:`close` releases a waiting
     thread when the loop ends early. With ``tracked = False`` every frame gets ``None`` at
     once (the configured plane) and nothing waits.
