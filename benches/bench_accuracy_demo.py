@@ -11,7 +11,10 @@ new map segments and relocalisations of each run) and writes the runs under ``--
 
     python benches/bench_accuracy_demo.py [--seeds 0,2] [--modes fusion,frames,events]
         [--backend threaded,sync] [--bridge on|off|both] [--flood on|off|both]
-        [--out bench-accuracy-demo]
+        [--warp-depth plane|tracked|both] [--out bench-accuracy-demo]
+
+``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
+``"plane"`` (the default) in the same invocation.
 """
 
 from __future__ import annotations
@@ -35,6 +38,9 @@ def main() -> int:
     parser.add_argument("--bridge", choices=("on", "off", "both"), default="on")
     parser.add_argument("--flood", choices=("on", "off", "both"), default="on", help="flood_predict")
     parser.add_argument("--features", default="orb")
+    parser.add_argument(
+        "--warp-depth", choices=("tracked", "plane", "both"), default="plane", help="[fusion] warp_depth"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy-demo"))
     args = parser.parse_args()
 
@@ -47,29 +53,33 @@ def main() -> int:
     backends = choices(parser, args.backend, ("threaded", "sync"), "back-end")
     bridges = {"on": [True], "off": [False], "both": [True, False]}[args.bridge]
     floods = {"on": [True], "off": [False], "both": [True, False]}[args.flood]
+    warps = {"tracked": ["tracked"], "plane": ["plane"], "both": ["tracked", "plane"]}[args.warp_depth]
     lines = [
         f"`demo` preset (HDR desk spiral, 4 s, 80 frames), features {args.features}; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
-        "| seed | mode | bridge | flood predict | back-end | frames | tracked | predicted "
+        "| seed | mode | bridge | flood predict | warp depth | back-end | frames | tracked | predicted "
         "| ATE RMSE [m] | ATE [% of path] | bridges | new segments | relocalisations |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for seed in (int(s) for s in args.seeds.split(",") if s):
         sequence = demo_sequence(seed=seed, progress=False)
         reference = load_trajectory(sequence / GROUND_TRUTH)
         for mode in modes:
             variants = [
-                (bridge, flood)
+                (bridge, flood, warp)
                 for bridge in (bridges if mode == "fusion" else [True])
                 for flood in (floods if mode != "frames" else [True])
+                for warp in (warps if mode != "frames" else warps[:1])
             ]
-            for bridge, flood in variants:
+            for bridge, flood, warp in variants:
                 config = _core.Config.from_toml(
                     f"[fusion]\nbridge = {str(bridge).lower()}\nflood_predict = {str(flood).lower()}"
+                    f'\nwarp_depth = "{warp}"'
                 )
                 for backend in backends:
                     tag = ("" if bridge else "-nobridge") + ("" if flood else "-noflood")
+                    tag += f"-{warp}" if len(warps) > 1 else ""
                     out = args.out / f"seed{seed}" / f"{mode}{tag}-{backend}"
                     result, ev = evaluated_run(
                         sequence, out, reference, mode=mode, features=args.features, config=config,
@@ -78,8 +88,10 @@ def main() -> int:
                     t = result.tracking
                     shown = ("on" if bridge else "off") if mode == "fusion" else "–"
                     shown_flood = ("on" if flood else "off") if mode != "frames" else "–"
+                    shown_warp = warp if mode != "frames" else "–"
                     lines.append(
-                        f"| {seed} | {mode} | {shown} | {shown_flood} | {backend} | {result.frames} "
+                        f"| {seed} | {mode} | {shown} | {shown_flood} | {shown_warp} | {backend} "
+                        f"| {result.frames} "
                         f"| {result.tracked} | {t.get('predicted', 0)} "
                         f"| {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} | {t.get('bridges', 0)} "
                         f"| {t.get('segments', 0)} | {t.get('relocalisations', 0)} |"

@@ -11,7 +11,11 @@ truth (evo, SE(3) alignment, left frame camera). Prints a Markdown table for
 docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
-        [--out bench-accuracy] [--sync]
+        [--out bench-accuracy] [--sync] [--warp-depth plane|tracked|both]
+
+``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
+``"plane"`` in the same invocation (before/after figures from one run of the same code); the
+default is the configuration's default, ``plane``.
 """
 
 from __future__ import annotations
@@ -43,14 +47,23 @@ def main() -> int:
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy"))
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
+    parser.add_argument(
+        "--warp-depth",
+        default="plane",
+        help='[fusion] warp_depth: "tracked", "plane" or "both" (the two in the same run)',
+    )
     args = parser.parse_args()
 
+    from dhptam import Config
     from dhptam.demo import GROUND_TRUTH, cache_dir
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
     from dhptam.sim import simulate
 
     modes = choices(parser, args.modes, MODES, "mode")
+    warps = choices(
+        parser, args.warp_depth.replace("both", "tracked,plane"), ("tracked", "plane"), "warp depth"
+    )
     if not args.trajectories.is_dir():
         parser.error(f"trajectory folder {args.trajectories} does not exist (set DHPTAM_SHARED)")
     files = sorted(p for p in args.trajectories.iterdir() if p.suffix in (".csv", ".tum", ".txt"))
@@ -81,9 +94,15 @@ def main() -> int:
             )
         reference = load_trajectory(sequence / GROUND_TRUTH)
         for mode in modes:
-            out = args.out / name / mode
-            result, ev = evaluated_run(sequence, out, reference, mode=mode, threaded=not args.sync)
-            lines.append(table_row(name, mode, result, ev))
+            # The warp depth only matters where events are warped.
+            for warp in warps if mode != "frames" else warps[:1]:
+                config = Config.from_toml(f'[fusion]\nwarp_depth = "{warp}"')
+                compared = len(warps) > 1 and mode != "frames"
+                out = args.out / name / (f"{mode}-{warp}" if compared else mode)
+                result, ev = evaluated_run(
+                    sequence, out, reference, mode=mode, config=config, threaded=not args.sync
+                )
+                lines.append(table_row(f"{name}, warp {warp}" if compared else name, mode, result, ev))
     return finish_table(lines, args.out)
 
 

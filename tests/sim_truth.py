@@ -15,12 +15,13 @@ from dhptam.sim.textures import load_photos
 _NS = 1_000_000_000
 
 
-def simulator_like(preset: str, seed: int = 0) -> _core.Simulator:
-    """The simulator of ``simulate(..., preset=preset, seed=seed)`` with default settings."""
+def simulator_like(preset: str, seed: int = 0, duration_s: float | None = None) -> _core.Simulator:
+    """The simulator of ``simulate(..., preset=preset, seed=seed, duration_s=duration_s)``
+    with default settings (a built-in motion is laid out over the duration)."""
     spec = PRESETS[preset]
     rig = RIGS[spec.rig]
     cameras, imu_from_cam = rig.cameras(), rig.imu_from_cam()
-    duration_ns = round(spec.duration_s * _NS)
+    duration_ns = round((spec.duration_s if duration_s is None else duration_s) * _NS)
     traj_t, traj_poses = _core.sim_builtin_trajectory(spec.motion, duration_ns)
     return _core.Simulator(
         [cameras[k] for k in CAMERA_KEYS],

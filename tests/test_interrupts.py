@@ -63,7 +63,7 @@ def _check_outputs(out: Path, frames: int) -> None:
 def test_ctrl_c_in_the_frontend_thread(
     sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    _interrupt_on_call(monkeypatch, dhptam.frontend.Frontend, "process", 9)
+    _interrupt_on_call(monkeypatch, dhptam.frontend.Frontend, "prepare", 9)
     result = run(sim_desk_run, tmp_path, mode="frames", progress=False)
     assert result.interrupted
     _check_outputs(tmp_path, 8)

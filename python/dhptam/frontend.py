@@ -28,8 +28,12 @@ homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM o
 well-exposed frame pair. Infinity is the default because nothing about the scene is known before tracking
 starts, and it is exact for distant scenes; its error for a point at depth z is
 ``f · b / z`` pixels with ``b`` the event-to-frame camera offset (a few cm on TUM-VIE-like
-rigs). The caller can set :attr:`Frontend.plane_depth_m` at any time, e.g. to the median depth
-of the tracked map points; the next frame processed uses it.
+rigs; :attr:`Frontend.warp_parallax_px` is ``f · b``). The caller can set
+:attr:`Frontend.plane_depth_m` at any time (the next frame processed uses it), or split a frame
+into :meth:`Frontend.prepare` (frames, E3CT: no depth needed) and :meth:`Frontend.finish`
+(warp through a given depth, β, blend). ``dhptam run`` with ``[fusion] warp_depth =
+"tracked"`` does the latter with the median depth of the map points the previous frame was
+tracked with, rounded by :meth:`Frontend.quantised_depth` so the warp maps are reused.
 
 A background thread runs ``prefetch`` frames ahead through a bounded queue, so the front-end of
 frame k+1 overlaps the consumer's tracking of frame k; the Rust kernels release the GIL.
@@ -123,6 +127,8 @@ class FrontendFrame:
     ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode
     (``aps``, ``dvs``, ``frames``, ``events``). ``flood``: the event window is an
     illumination flood (:func:`is_flood`; always ``False`` in mode ``frames``).
+    ``warp_depth_m``: depth in metres of the plane the events were warped through (0:
+    infinity; 0 in mode ``frames``).
     """
 
     index: int
@@ -139,6 +145,20 @@ class FrontendFrame:
     events_left: _F32 | None
     events_right: _F32 | None
     flood: bool = False
+    warp_depth_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """A frame before its event warp (:meth:`Frontend.prepare`): the rectified frames
+    ``(left, right)`` and, outside mode ``frames``, the raw E3CTs ``(left, right)`` of its
+    window in the rectified event cameras with the window's statistics."""
+
+    index: int
+    t_ns: int
+    frames: tuple[_U8, _U8]
+    tensors: tuple[_F32, _F32] | None
+    stats: E3ctStats | None
 
 
 @dataclass(frozen=True)
@@ -249,6 +269,8 @@ class Frontend:
         self.flood_polarity: float = float(fusion_cfg["flood_polarity"])
         self.flood_history: int = int(fusion_cfg["flood_history"])
         self.flood_predict: bool = bool(fusion_cfg["flood_predict"])
+        self.warp_depth: str = str(fusion_cfg["warp_depth"])
+        self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
         # Event counts (left + right) of the windows seen, by frame index (flood reference).
         self._window_counts: dict[int, int] = {}
         self.align_px: tuple[float, float] = (
@@ -445,7 +467,9 @@ class Frontend:
             polarity=self.flood_polarity,
         )
 
-    def _warped_events(self, t0: int, t1: int) -> tuple[dict[str, _F32], E3ctStats]:
+    def _event_tensors(self, t0: int, t1: int) -> tuple[list[_F32], E3ctStats]:
+        """The raw E3CT of each event camera (left, right) for ``[t0, t1)`` and the window's
+        statistics (its shared normalisation scales included)."""
         cfg = self._events_cfg
         w, h = int(self.event_rect.width), int(self.event_rect.height)
         raw_counts: dict[str, int] = {}
@@ -471,8 +495,25 @@ class Frontend:
                     polarity=cfg["polarity"],
                 )
             )
-        # Normalised inside the warp (tap by tap, the same values as normalise() then warp).
         scales = shared_scales(*tensors, percentile=cfg["normalise_percentile"])
+        stats = E3ctStats(
+            window_start_ns=t0,
+            window_end_ns=t1,
+            events_left=raw_counts["left"],
+            events_right=raw_counts["right"],
+            rectified_left=rect_counts["left"],
+            rectified_right=rect_counts["right"],
+            scales=tuple(float(s) for s in scales),
+            on_left=on_counts["left"],
+            on_right=on_counts["right"],
+        )
+        return tensors, stats
+
+    def _warp_tensors(
+        self, tensors: list[_F32], scales: tuple[float, ...], depth_m: float
+    ) -> dict[str, _F32]:
+        """The raw E3CTs (left, right) normalised with ``scales`` inside the warp (tap by tap,
+        the same values as normalise() then warp) and warped through the plane at ``depth_m``."""
         k_event = self.event_rect.K
         k_frame = self.frame_rect.K
         ke = [k_event[0, 0], k_event[1, 1], k_event[0, 2], k_event[1, 2]]
@@ -486,39 +527,82 @@ class Frontend:
                 self.frame_from_event[side],
                 width=int(self.frame_rect.width),
                 height=int(self.frame_rect.height),
-                depth_m=self.plane_depth_m,
+                depth_m=depth_m,
                 align_px=self.align_px,
                 scales=scales,
             )
             out[side] = warped
-        stats = E3ctStats(
-            window_start_ns=t0,
-            window_end_ns=t1,
-            events_left=raw_counts["left"],
-            events_right=raw_counts["right"],
-            rectified_left=rect_counts["left"],
-            rectified_right=rect_counts["right"],
-            scales=tuple(float(s) for s in scales),
-            on_left=on_counts["left"],
-            on_right=on_counts["right"],
-        )
-        return out, stats
+        return out
 
-    def process(self, index: int) -> FrontendFrame:
-        """Runs the pipeline on frame ``index`` in the calling thread."""
-        pair = self.sequence.frames[index]
-        frames = {
-            "left": self._rectify_frame(pair.left, "left"),
-            "right": self._rectify_frame(pair.right, "right"),
-        }
-        t_ns = int(self.t_f_ns[index])
+    # -- warp depth from the tracker (``[fusion] warp_depth``) ---------------------------------
+
+    @property
+    def warp_parallax_px(self) -> float:
+        """Parallax in frame pixels per unit of inverse depth (px · m) between the rectified
+        event and frame cameras: ``f_frame · |t_xy|`` of the larger of the two sides' offsets.
+        A point at depth z warped through infinity lands ``warp_parallax_px / z`` pixels from
+        where the frame camera sees it (0 in mode ``frames``)."""
         if self.mode == "frames":
+            return 0.0
+        f = float(self.frame_rect.K[0, 0])
+        return max(
+            f * float(np.linalg.norm(self.frame_from_event[side].translation[:2]))
+            for side in ("left", "right")
+        )
+
+    def quantised_depth(self, depth_m: float | None, current: float | None = None) -> float:
+        """``depth_m`` rounded to the inverse-depth bins of ``[fusion] warp_depth_step_px``
+        (bin width ``step_px / warp_parallax_px`` in 1/m), so consecutive frames share a warp
+        map while the scene depth drifts; ``None``, 0 or a non-finite depth give the
+        configured ``plane_depth_m``. Depths beyond ``2 · warp_parallax_px / step_px`` metres
+        round to bin 0: infinity (their parallax is under half a bin).
+
+        With ``current`` (the depth the previous frame was warped through, > 0) the warp
+        keeps ``current`` while ``depth_m``'s parallax is within one bin of it: a tracked
+        depth wavering at a bin edge does not make the event image jump back and forth."""
+        if depth_m is None or not np.isfinite(depth_m) or depth_m <= 0.0:
+            return self.plane_depth_m
+        parallax = self.warp_parallax_px
+        if self.warp_depth_step_px <= 0.0 or parallax <= 0.0:
+            return float(depth_m)
+        if (
+            current is not None
+            and current > 0.0
+            and abs(parallax / depth_m - parallax / current) <= self.warp_depth_step_px
+        ):
+            return float(current)
+        step = self.warp_depth_step_px / parallax  # inverse-depth bin width, 1/m
+        bins = round((1.0 / depth_m) / step)
+        return 0.0 if bins == 0 else float(1.0 / (bins * step))
+
+    # -- one frame ------------------------------------------------------------------------------
+
+    def prepare(self, index: int) -> PreparedFrame:
+        """The part of :meth:`process` that does not depend on the warp depth: the rectified
+        frames and, outside mode ``frames``, the raw E3CTs of frame ``index``'s window.
+        :meth:`finish` completes it; ``process(k) == finish(prepare(k))``."""
+        pair = self.sequence.frames[index]
+        frames = (self._rectify_frame(pair.left, "left"), self._rectify_frame(pair.right, "right"))
+        if self.mode == "frames":
+            return PreparedFrame(index, int(self.t_f_ns[index]), frames, None, None)
+        tensors, stats = self._event_tensors(*self.window_ns(index))
+        return PreparedFrame(index, int(self.t_f_ns[index]), frames, (tensors[0], tensors[1]), stats)
+
+    def finish(self, prepared: PreparedFrame, depth_m: float | None = None) -> FrontendFrame:
+        """Warps ``prepared``'s events through the plane at ``depth_m`` (default
+        :attr:`plane_depth_m`; 0: infinity), chooses β and blends (see :meth:`process`)."""
+        index, t_ns = prepared.index, prepared.t_ns
+        frames = {"left": prepared.frames[0], "right": prepared.frames[1]}
+        if prepared.tensors is None or prepared.stats is None:
             return FrontendFrame(
                 index, t_ns, frames["left"], frames["right"], 0.0, 0.0, "frames", "frames", None,
                 frames["left"], frames["right"], None, None,
             )  # fmt: skip
-        t0, t1 = self.window_ns(index)
-        events, stats = self._warped_events(t0, t1)
+        depth = self.plane_depth_m if depth_m is None else float(depth_m)
+        if not (np.isfinite(depth) and depth >= 0.0):
+            raise InputError(f"depth_m must be >= 0 (0: infinity), got {depth_m!r}", field="depth_m")
+        stats = prepared.stats
+        events = self._warp_tensors(list(prepared.tensors), stats.scales, depth)
         images: dict[str, _U8] = {}
         betas: dict[str, tuple[str, float]] = {}
         for side in ("left", "right"):
@@ -545,7 +629,13 @@ class Frontend:
             events_left=events["left"],
             events_right=events["right"],
             flood=self.flood(index, stats),
+            warp_depth_m=depth,
         )
+
+    def process(self, index: int) -> FrontendFrame:
+        """Runs the pipeline on frame ``index`` in the calling thread, warping through
+        :attr:`plane_depth_m`."""
+        return self.finish(self.prepare(index))
 
     def bridge_images(self, previous: FrontendFrame, current: FrontendFrame) -> BridgeImages | None:
         """The bridge rendering at a switch between frames ``previous`` and ``current`` (see
@@ -624,6 +714,7 @@ __all__ = [
     "E3ctStats",
     "Frontend",
     "FrontendFrame",
+    "PreparedFrame",
     "RectifiedCalibration",
     "is_flood",
 ]

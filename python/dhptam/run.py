@@ -12,9 +12,10 @@ others:
 
 Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
 seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inliers, β, fusion
-bias, stage times), ``timing.json`` (per stage statistics), ``config.toml`` (resolved) and
-``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
-a file; Ctrl-C or a failure mid-run still writes everything done so far.
+bias, flood flag, bridge, depth ``warp_depth_m`` of the event→frame warp plane, stage times),
+``timing.json`` (per stage statistics), ``config.toml`` (resolved) and ``run.log``. Each file
+is written to a temporary name and renamed, so a reader never sees half a file; Ctrl-C or a
+failure mid-run still writes everything done so far.
 
 With ``viz="rerun"`` each tracked frame is also handed to a :class:`dhptam.viz.RerunSink`,
 which streams ``recording.rrd`` as the run goes (the no-op :class:`dhptam.viz.VizSink`
@@ -510,6 +511,49 @@ def _uninterrupted(step: Callable[[], Any], result: RunResult, what: str, tries:
     return None
 
 
+class _DepthFeed:
+    """The warp depth of each frame from the tracking of the frame before it
+    (``[fusion] warp_depth = "tracked"``).
+
+    The tracking loop :meth:`publish`-es, after each frame, the median depth of the map points
+    it was tracked with (``System.tracked_depth``; ``None`` when lost or not initialised); the
+    extraction thread :meth:`wait`-s for frame k−1's value before warping frame k, so a run
+    gives the same images whatever the threads' timing. :meth:`close` releases a waiting
+    thread when the loop ends early. With ``tracked = False`` every frame gets ``None`` at
+    once (the configured plane) and nothing waits.
+    """
+
+    def __init__(self, start: int, tracked: bool) -> None:
+        self._cond = threading.Condition()
+        self._start = start
+        self._tracked = tracked
+        #: Whether frames wait for their predecessor's depth (``warp_depth = "tracked"``).
+        self.waits = tracked
+        self._done = start - 1  # the last frame index published
+        self._depth: float | None = None
+        self._closed = False
+
+    def publish(self, index: int, depth_m: float | None) -> None:
+        with self._cond:
+            self._done, self._depth = index, depth_m
+            self._cond.notify_all()
+
+    def wait(self, index: int) -> float | None:
+        """The depth for frame ``index``: frame ``index − 1``'s, once published."""
+        if not self._tracked or index <= self._start:
+            return None
+        with self._cond:
+            self._cond.wait_for(lambda: self._closed or self._done >= index - 1)
+            if self._closed and self._done < index - 1:
+                raise RuntimeError("the tracking loop ended before this frame's warp depth was known")
+            return self._depth
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
 def _track_all(
     frontend: Any,
     extractor: Any,
@@ -523,23 +567,44 @@ def _track_all(
     # One frame of front-end state: at a fusion-mode switch the front-end renders the frame
     # with usable raw data also with the other mode's β (Frontend.bridge_images).
     previous: list[Any] = [None]
+    # [fusion] warp_depth = "tracked": the event warp of frame k goes through a plane at the
+    # depth of the map points frame k-1 was tracked with, so the events' parallax against the
+    # frame cameras is removed where the scene is (the E3CT of frame k is computed ahead, its
+    # warp, blend and features wait for frame k-1's tracking).
+    feed = _DepthFeed(frontend.start, frontend.mode != "frames" and frontend.warp_depth == "tracked")
 
-    def front(index: int) -> tuple[Any, float, Any]:
-        t0 = time.perf_counter()
-        frame = frontend.process(index)
+    # The depth the last frame was warped through (the quantisation keeps it while the tracked
+    # depth stays within one bin of it).
+    warped_at: list[float | None] = [None]
+
+    def render(prepared: Any) -> tuple[Any, Any]:
+        """Frame k's warp, blend and bridge rendering, through frame k−1's tracked depth."""
+        depth = frontend.quantised_depth(feed.wait(prepared.index), warped_at[0])
+        warped_at[0] = depth
+        frame = frontend.finish(prepared, depth)
         bridge = None if previous[0] is None else frontend.bridge_images(previous[0], frame)
         # A flood frame is predicted, not tracked: the bridge spans it, from the last clean frame.
         if not (frame.flood and frontend.flood_predict):
             previous[0] = frame
-        return frame, time.perf_counter() - t0, bridge
+        return frame, bridge
 
-    def extract(item: tuple[Any, float, Any]) -> tuple[Any, float, Any, Any, float, Any]:
-        frame, t_front, bridge = item
+    # Without a tracked depth to wait for, the whole front-end runs on its own thread, ahead of
+    # the extraction; with one, only the E3CT runs ahead and the rest waits for frame k−1.
+    def front(index: int) -> tuple[Any, Any, float]:
         t0 = time.perf_counter()
+        prepared = frontend.prepare(index)
+        rendered = None if feed.waits else render(prepared)
+        return prepared, rendered, time.perf_counter() - t0
+
+    def extract(item: tuple[Any, Any, float]) -> tuple[Any, float, Any, Any, float, Any]:
+        prepared, rendered, t_front = item
+        t0 = time.perf_counter()
+        frame, bridge = render(prepared) if rendered is None else rendered
+        t1 = time.perf_counter()
         left, right = extractor.extract(frame.left, frame.right)
         if bridge is not None:
             bridge = (bridge, extractor.extract(bridge.left, bridge.right))
-        return frame, t_front, left, right, time.perf_counter() - t0, bridge
+        return frame, t_front + t1 - t0, left, right, time.perf_counter() - t1, bridge
 
     indices = iter(range(frontend.start, frontend.stop))
     fused = prefetched(indices, front, "frontend", 2)
@@ -549,9 +614,10 @@ def _track_all(
         try:
             _track_frames(
                 extracted, system, outputs, states, realtime, bar, sink, interrupt_pending,
-                frontend.flood_predict,
+                frontend.flood_predict, feed,
             )  # fmt: skip
         finally:
+            feed.close()
             extracted.close()
             if bar is not None:
                 bar.close()
@@ -567,12 +633,14 @@ def _track_frames(
     sink: Any,
     interrupt_pending: Callable[[], bool],
     flood_predict: bool = False,
+    feed: _DepthFeed | None = None,
 ) -> None:
     """The tracking loop on the caller's thread: one frame tracked and recorded per step; a
     Ctrl-C takes effect between frames, so the trajectory and ``frames.csv`` hold the same
     frames. With ``flood_predict`` a flood frame's pose is predicted by the motion model
     (``System.predict``) instead of tracked, and the last clean frame stays the one a bridge
-    keyframe may start from."""
+    keyframe may start from. After each frame the median depth of the map points it was
+    tracked with goes to ``feed`` (the next frame's warp depth)."""
     wall0 = time.perf_counter()
     t_first: int | None = None
     last: tuple[int, Any] | None = None  # (frame index, (left, right) features it was tracked with)
@@ -593,6 +661,8 @@ def _track_frames(
             r, bridged = _track_bridged(system, frame, (left, right), bridge, last)
             last = (frame.index, (left, right))
         t_track = time.perf_counter() - t0
+        if feed is not None:
+            feed.publish(frame.index, system.tracked_depth())
         states[r.state] += 1
         sink.frame(frame, left, right, r)
         outputs.record(
@@ -607,6 +677,7 @@ def _track_frames(
                 "beta_left": f"{frame.beta_left:.4f}",
                 "bias": frame.bias,
                 "flood": int(frame.flood),
+                "warp_depth_m": f"{frame.warp_depth_m:.4f}",
                 "bridge": bridged,
                 "frontend_s": round(t_front, 6),
                 "extraction_s": round(t_extract, 6),

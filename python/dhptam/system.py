@@ -145,6 +145,13 @@ class System:
         (:meth:`predict`)."""
         return self._core.tracking_totals()
 
+    def tracked_depth(self) -> float | None:
+        """Median depth in metres (rectified left camera) of the map points the last
+        :meth:`track` measured its pose with (after a bootstrap: the points it created);
+        ``None`` before the first frame, after a lost frame or without such points.
+        :meth:`predict` leaves it unchanged."""
+        return self._core.tracked_depth()
+
     def trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """(t_ns (N,), poses (N, 4, 4)) of every tracked frame, with the latest corrections."""
         return self._core.trajectory()

@@ -244,6 +244,22 @@ config_section! {
         /// next clean frame against the map; bridges at a fusion-mode switch span the flood.
         /// Off: flood frames are tracked like any other (still flagged in `frames.csv`).
         flood_predict: bool = true,
+        /// Depth of the event→frame warp plane during `dhptam run` (issue 8): "plane" warps
+        /// every frame through `plane_depth_m`; "tracked" warps frame k through a plane at
+        /// the median depth of the map points frame k−1 was tracked with
+        /// (`System::tracked_depth`), falling back to `plane_depth_m` before initialisation
+        /// and after a lost frame. "tracked" puts the warped event pixels about 5× nearer the
+        /// frame pixels of the same points (median 0.4–0.7 px against 2.4–3.2 px) but raised
+        /// the `fusion` trajectory error on 4 of the 6 sequences measured (docs/BENCHMARKS.md,
+        /// "Accuracy: event→frame warp depth from tracked map points"), hence the default.
+        warp_depth: String = "plane".to_string(),
+        /// Bin width of the tracked warp depth, in pixels of event→frame parallax: the depth
+        /// is rounded in inverse depth to bins this many pixels of parallax wide (at the
+        /// frame camera's focal length and the event-to-frame offset), so the warp maps are
+        /// reused while the scene depth drifts; the rounding moves warped pixels by at most
+        /// half of it. The warp keeps the previous frame's depth while the tracked one is
+        /// within one bin of it (no back-and-forth at a bin edge). 0: no rounding.
+        warp_depth_step_px: f64 = 0.5,
     }
 }
 
@@ -812,6 +828,18 @@ impl FusionConfig {
             self.flood_history >= 1,
             "at least 1 window",
             self.flood_history,
+        )?;
+        check(
+            "fusion.warp_depth",
+            ["tracked", "plane"].contains(&self.warp_depth.as_str()),
+            "\"tracked\" or \"plane\"",
+            format!("{:?}", self.warp_depth),
+        )?;
+        check(
+            "fusion.warp_depth_step_px",
+            self.warp_depth_step_px.is_finite() && self.warp_depth_step_px >= 0.0,
+            "0 (no rounding) or a positive parallax in pixels",
+            self.warp_depth_step_px,
         )
     }
 }

@@ -196,6 +196,12 @@ impl PySystem {
         Ok(d)
     }
 
+    /// Median depth (m) of the map points the last `track` measured its pose with; None
+    /// before the first frame, after a lost one or without such points.
+    fn tracked_depth(&self) -> Option<f64> {
+        self.with(|s| s.tracked_depth())
+    }
+
     /// (t_ns (N,) int64, poses (N, 4, 4) world_from_cam) of every tracked frame.
     fn trajectory<'py>(
         &self,

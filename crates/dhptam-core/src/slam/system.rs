@@ -205,6 +205,30 @@ pub struct System {
     mapping_tx: Option<SyncSender<u64>>,
     workers: Vec<JoinHandle<()>>,
     closed: bool,
+    /// Median depth (m, rectified left camera) of the map points the last measured frame
+    /// tracked ([`System::tracked_depth`]).
+    tracked_depth: Option<f64>,
+}
+
+/// Median of the depths (z in `cam_from_world`'s camera, metres) of the map points `ids`;
+/// points behind the camera or no longer in the map are skipped, `None` when none is left.
+fn median_point_depth(
+    map: &Map,
+    cam_from_world: &Se3,
+    ids: impl IntoIterator<Item = u64>,
+) -> Option<f64> {
+    let mut z: Vec<f64> = ids
+        .into_iter()
+        .filter_map(|id| map.points.get(&id))
+        .map(|p| cam_from_world.transform_point(&p.position).z)
+        .filter(|z| z.is_finite() && *z > 0.0)
+        .collect();
+    if z.is_empty() {
+        return None;
+    }
+    let mid = z.len() / 2;
+    let (_, m, _) = z.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(*m)
 }
 
 fn mapping_worker(shared: Arc<Shared>, rx: Receiver<u64>, loops: SyncSender<u64>) {
@@ -264,6 +288,7 @@ impl System {
             mapping_tx: None,
             workers: Vec::new(),
             closed: false,
+            tracked_depth: None,
         };
         if threaded {
             let queue = system.shared.config.mapping.queue as usize;
@@ -406,6 +431,16 @@ impl System {
         self.totals
     }
 
+    /// Median depth in metres, along the rectified left camera's optical axis, of the map
+    /// points the last [`System::track`] call measured its pose with (its inliers; after a
+    /// bootstrap or re-initialisation, the points its keyframe created). `None` before the
+    /// first frame, after a lost frame or when no such point lies in front of the camera.
+    /// [`System::predict`] leaves it unchanged. The front-end warps the next frame's events
+    /// through a plane at this depth (`[fusion] warp_depth = "tracked"`).
+    pub fn tracked_depth(&self) -> Option<f64> {
+        self.tracked_depth
+    }
+
     /// Tracks one stereo frame; inserts a keyframe and runs (or queues) mapping when needed.
     pub fn track(
         &mut self,
@@ -446,12 +481,22 @@ impl System {
             match tracked.filter(|t| t.inliers >= ctx.cfg.min_tracked as usize) {
                 Some(t) => {
                     let mut map = write_lock(&shared.map);
+                    self.tracked_depth = median_point_depth(
+                        &map,
+                        &t.cam_from_world,
+                        t.matches.iter().flatten().copied(),
+                    );
                     commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, previous, false)
                 }
                 None => match shared.time("relocalise", || self.relocalise(&frame, &ctx)) {
                     Some((t, reference)) => {
                         self.totals.relocalisations += 1;
                         let mut map = write_lock(&shared.map);
+                        self.tracked_depth = median_point_depth(
+                            &map,
+                            &t.cam_from_world,
+                            t.matches.iter().flatten().copied(),
+                        );
                         self.state.reference = Some(reference);
                         commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, None, true)
                     }
@@ -494,6 +539,19 @@ impl System {
             e.count += 1;
             e.total_s += s;
             e.max_s = e.max_s.max(s);
+        }
+        match outcome.state {
+            TrackState::Lost => self.tracked_depth = None,
+            // Bootstrapped or re-initialised: the points the new keyframe created.
+            TrackState::Initialised => {
+                self.tracked_depth = outcome.keyframe.and_then(|kf| {
+                    let map = read_lock(&shared.map);
+                    let k = map.keyframes.get(&kf)?;
+                    let ids: Vec<u64> = k.points.iter().flatten().copied().collect();
+                    median_point_depth(&map, &k.world_from_cam.inverse(), ids)
+                });
+            }
+            _ => {}
         }
         if let Some(kf) = outcome.keyframe {
             self.after_keyframe(kf);
