@@ -52,7 +52,7 @@ from ._prefetch import prefetched
 from .datasets import EventWindow, Sequence
 from .errors import InputError
 from .events import e3ct, shared_scales
-from .fusion import choose_beta, fuse, warp_to_frame
+from .fusion import choose_beta, fuse, warp_and_fuse, warp_to_frame
 from .geometry import SE3, RectifiedStereo, StereoRig
 
 MODES = ("fusion", "frames", "events")
@@ -445,7 +445,10 @@ class Frontend:
             polarity=self.flood_polarity,
         )
 
-    def _warped_events(self, t0: int, t1: int) -> tuple[dict[str, _F32], E3ctStats]:
+    def _warped_events(
+        self, t0: int, t1: int, frames: dict[str, _U8], betas: dict[str, tuple[str, float]]
+    ) -> tuple[dict[str, _F32], dict[str, _U8], E3ctStats]:
+        """The warped E3CT of each side and its fusion with ``frames`` at ``betas``."""
         cfg = self._events_cfg
         w, h = int(self.event_rect.width), int(self.event_rect.height)
         raw_counts: dict[str, int] = {}
@@ -478,19 +481,20 @@ class Frontend:
         ke = [k_event[0, 0], k_event[1, 1], k_event[0, 2], k_event[1, 2]]
         kf = [k_frame[0, 0], k_frame[1, 1], k_frame[0, 2], k_frame[1, 2]]
         out = {}
+        fused: dict[str, _U8] = {}
         for side, tensor in zip(("left", "right"), tensors, strict=True):
-            warped, _ = warp_to_frame(
+            # fuse() takes the per-pixel largest channel as the event intensity D.
+            out[side], fused[side] = warp_and_fuse(
                 tensor,
                 ke,
                 kf,
                 self.frame_from_event[side],
-                width=int(self.frame_rect.width),
-                height=int(self.frame_rect.height),
+                frames[side],
+                betas[side][1],
                 depth_m=self.plane_depth_m,
                 align_px=self.align_px,
                 scales=scales,
             )
-            out[side] = warped
         stats = E3ctStats(
             window_start_ns=t0,
             window_end_ns=t1,
@@ -502,7 +506,7 @@ class Frontend:
             on_left=on_counts["left"],
             on_right=on_counts["right"],
         )
-        return out, stats
+        return out, fused, stats
 
     def process(self, index: int) -> FrontendFrame:
         """Runs the pipeline on frame ``index`` in the calling thread."""
@@ -518,8 +522,6 @@ class Frontend:
                 frames["left"], frames["right"], None, None,
             )  # fmt: skip
         t0, t1 = self.window_ns(index)
-        events, stats = self._warped_events(t0, t1)
-        images: dict[str, _U8] = {}
         betas: dict[str, tuple[str, float]] = {}
         for side in ("left", "right"):
             if self.mode == "events":
@@ -528,8 +530,8 @@ class Frontend:
                 count = None if self.feature_counter is None else int(self.feature_counter(frames[side]))
                 d = choose_beta(frames[side], count, self.config)
                 betas[side] = (d.bias, d.beta)
-            # fuse() takes the per-pixel largest channel as the event intensity D.
-            images[side] = fuse(frames[side], events[side], betas[side][1])
+        # β depends on the frame only, so the blend happens inside the warp (warp_and_fuse).
+        events, images, stats = self._warped_events(t0, t1, frames, betas)
         return FrontendFrame(
             index=index,
             t_ns=t_ns,

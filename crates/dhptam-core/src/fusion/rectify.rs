@@ -12,6 +12,7 @@ use nalgebra::Vector2;
 use rayon::prelude::*;
 
 use crate::error::Result;
+use crate::events::window::check_frame;
 use crate::events::EventSlice;
 use crate::geometry::rectify::{RectifiedStereo, Side};
 
@@ -109,30 +110,52 @@ impl EventRectifier {
         t_start_ns: i64,
         t_end_ns: i64,
     ) -> Result<RectifiedEvents> {
-        events.validate(self.width, self.height, t_start_ns, t_end_ns)?;
+        check_frame(self.width, self.height, t_start_ns, t_end_ns)?;
         let n = events.len();
-        // Pass 1: the rectified pixel index of every event (or OUTSIDE) and, per chunk, the
-        // kept count, which places each chunk's output after the previous chunks' outputs.
-        // Allocated without zeroing: every slot is written here, every output value below.
+        // Pass 1, chunk by chunk: the chunk's events validated (see `EventSlice::validate`)
+        // while its arrays come into cache, then the rectified pixel index of every event (or
+        // OUTSIDE) and the chunk's kept count, which places each chunk's output after the
+        // previous chunks' outputs. Allocated without zeroing: every slot is written here,
+        // every output value below. A chunk with an invalid event stops before its lookups
+        // (the table is only read at valid raw pixels) and reports its first invalid event.
         let mut index: Vec<u32> = Vec::with_capacity(n);
         let width = self.width as usize;
-        let counts: Vec<usize> = index.spare_capacity_mut()[..n]
+        let counts: Vec<std::result::Result<usize, usize>> = index.spare_capacity_mut()[..n]
             .par_chunks_mut(APPLY_CHUNK)
             .enumerate()
             .map(|(c, out)| {
                 let start = c * APPLY_CHUNK;
-                let xs = &events.x[start..start + out.len()];
-                let ys = &events.y[start..start + out.len()];
+                let end = start + out.len();
+                if let Some(bad) =
+                    events.first_invalid(start..end, self.width, self.height, t_start_ns, t_end_ns)
+                {
+                    return Err(bad);
+                }
+                let xs = &events.x[start..end];
+                let ys = &events.y[start..end];
                 let mut kept = 0;
                 for ((slot, &u), &v) in out.iter_mut().zip(xs).zip(ys) {
-                    // validate() guaranteed u < width and v < height.
+                    // Validated above: u < width and v < height.
                     let entry = self.table[usize::from(v) * width + usize::from(u)];
                     slot.write(entry);
                     kept += usize::from(entry != OUTSIDE);
                 }
-                kept
+                Ok(kept)
             })
             .collect();
+        // The first invalid event of the window lies in the first chunk reporting one.
+        let counts: Vec<usize> = match counts.iter().find_map(|c| c.err()) {
+            Some(bad) => {
+                return Err(events.invalid_event(
+                    bad,
+                    self.width,
+                    self.height,
+                    t_start_ns,
+                    t_end_ns,
+                ))
+            }
+            None => counts.into_iter().flatten().collect(),
+        };
         // SAFETY: the chunks above cover all `n` slots and each wrote every one of its slots.
         unsafe { index.set_len(n) };
         let total: usize = counts.iter().sum();
@@ -154,15 +177,20 @@ impl EventRectifier {
             .for_each(|(c, ((xo, yo), (to, po)))| {
                 let start = c * APPLY_CHUNK;
                 let end = (start + APPLY_CHUNK).min(n);
+                // Compacted without a branch on the entry (events outside the rectified view
+                // fall anywhere in the stream): every event is written to the next free slot,
+                // which only a kept event then moves past. The bounds test only fails after
+                // the chunk's last kept event.
+                let len = xo.len();
                 let mut j = 0;
                 for (k, &e) in (start..end).zip(&index[start..end]) {
-                    if e != OUTSIDE {
+                    if j < len {
                         xo[j].write((e & 0xFFFF) as u16);
                         yo[j].write((e >> 16) as u16);
                         to[j].write(events.t_ns[k]);
                         po[j].write(events.p[k]);
-                        j += 1;
                     }
+                    j += usize::from(e != OUTSIDE);
                 }
             });
         // SAFETY: chunk c kept exactly counts[c] events (pass 1 counted the same test), so it
