@@ -635,9 +635,9 @@ fn warp_map_apply_fused_is_apply_then_fuse_e3ct_bit_for_bit() {
                 }
             }
         }
-        // Not a trivial blend: with β = 1 some pixels are saturated events, some black.
+        // Not a trivial blend: with β = 1 some pixels are bright events, some black.
         let (_, events_only) = map.apply_fused(&src, c, Some(&scales), &frame, 1.0).unwrap();
-        assert!(events_only.contains(&255) && events_only.contains(&0));
+        assert!(events_only.iter().any(|&v| v > 200) && events_only.contains(&0));
         assert!(map.apply_fused(&src, c, None, &frame[1..], 0.5).is_err());
         assert!(map.apply_fused(&src, c, None, &frame, 1.5).is_err());
         assert!(map.apply_fused(&src[1..], c, None, &frame, 0.5).is_err());
