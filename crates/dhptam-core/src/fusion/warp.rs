@@ -289,8 +289,10 @@ impl WarpMap {
     ///
     /// With `scales` (one positive finite value per channel), each tap is first normalised as
     /// [`crate::events::scaled`] does (`(s · (1 / scale)).clamp(0, 1)`): the result equals
-    /// warping the normalised image, bit for bit, without making it. Clipping is not linear,
-    /// so it cannot move after the interpolation without changing the values.
+    /// warping the normalised image, bit for bit, without making it (for finite values: a NaN
+    /// tap of zero weight, which the per-pixel sample skips, makes the value NaN here).
+    /// Clipping is not linear, so it cannot move after the interpolation without changing
+    /// the values.
     ///
     /// Parallel over pieces of frame pixels; every output value is written once (the output
     /// is not zeroed first).
@@ -372,9 +374,13 @@ impl WarpMap {
             weights: ab,
         });
         match inv.as_deref() {
-            None => self.gather_any(src, channels, out, blend, |s, _| s),
+            None => self.gather_any::<false>(src, channels, out, blend, |s, _| s),
             Some(k) => {
-                self.gather_any(src, channels, out, blend, |s, i| (s * k[i]).clamp(0.0, 1.0))
+                // Normalised taps lie in [0, 1] (for finite input), so a zero weight adds +0 and
+                // need not be skipped: the dense loop gives the same sums.
+                self.gather_any::<true>(src, channels, out, blend, |s, i| {
+                    (s * k[i]).clamp(0.0, 1.0)
+                })
             }
         }
         // SAFETY: `gather` wrote all `n` values of the spare capacity: each piece writes every
@@ -384,7 +390,7 @@ impl WarpMap {
     }
 
     /// [`Self::gather`] with the channel count a constant where it is 1 to 4.
-    fn gather_any(
+    fn gather_any<const DENSE: bool>(
         &self,
         src: &[f32],
         c: usize,
@@ -393,17 +399,19 @@ impl WarpMap {
         value: impl Fn(f32, usize) -> f32 + Sync,
     ) {
         match c {
-            1 => self.gather::<1>(src, c, out, blend, value),
-            2 => self.gather::<2>(src, c, out, blend, value),
-            3 => self.gather::<3>(src, c, out, blend, value),
-            4 => self.gather::<4>(src, c, out, blend, value),
-            _ => self.gather::<0>(src, c, out, blend, value),
+            1 => self.gather::<1, DENSE>(src, c, out, blend, value),
+            2 => self.gather::<2, DENSE>(src, c, out, blend, value),
+            3 => self.gather::<3, DENSE>(src, c, out, blend, value),
+            4 => self.gather::<4, DENSE>(src, c, out, blend, value),
+            _ => self.gather::<0, DENSE>(src, c, out, blend, value),
         }
     }
 
     /// The gather: every frame pixel's `c` values (`c = C` when `C > 0`), each tap's value
-    /// entering as `value(s, k)`.
-    fn gather<const C: usize>(
+    /// entering as `value(s, k)`. Taps of zero weight are skipped, as the per-pixel sample
+    /// skips them, unless `DENSE` (for values where adding `0 · value` changes nothing: the
+    /// normalised taps, in [0, 1]; the loop then has no branch per tap).
+    fn gather<const C: usize, const DENSE: bool>(
         &self,
         src: &[f32],
         c: usize,
@@ -451,7 +459,7 @@ impl WarpMap {
                         // weights skipped as it skips them.
                         let mut acc = 0.0f32;
                         for (tap, &weight) in taps.iter().zip(&weights) {
-                            if weight != 0.0 {
+                            if DENSE || weight != 0.0 {
                                 acc += weight * value(tap[k], k);
                             }
                         }
