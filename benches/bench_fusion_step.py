@@ -83,11 +83,15 @@ def main() -> None:
             m.SE3(m.SO3.exp([0.01, -0.015, 0.004]), [0.02, 0.03, 0.0]) if m is not _core else frame_from_event
         )
 
-        def warp_fuse(image: np.ndarray, scales: list[float], frame: np.ndarray, beta: float) -> list[np.ndarray]:
+        def warp_fuse(
+            image: np.ndarray, scales: list[float], frame: np.ndarray, beta: float
+        ) -> list[np.ndarray]:
             if fused_blend:
                 args = (image, k_event, k_frame, pose, 2.0, (0.0, 0.0), frame, beta, scales)
                 return list(m._warp_and_fuse(*args))
-            warped = m._warp_to_frame(image, k_event, k_frame, pose, 2.0, (0.0, 0.0), FRAME, FRAME, None, scales)[0]
+            warped = m._warp_to_frame(
+                image, k_event, k_frame, pose, 2.0, (0.0, 0.0), FRAME, FRAME, None, scales
+            )[0]
             return [warped, m._fuse(frame, warped, beta)]
 
         def run() -> tuple[list[Mark], list[np.ndarray]]:

@@ -75,7 +75,15 @@ def test_warp_and_fuse_equals_warp_then_fuse() -> None:
         want = _warp(left, depth_m, align, scales=scales)
         for beta in (0.0, 0.37, 1.0):
             warped, fused = warp_and_fuse(
-                left, K_EVENT, K_FRAME, FRAME_FROM_EVENT, frame, beta, depth_m=depth_m, align_px=align, scales=scales
+                left,
+                K_EVENT,
+                K_FRAME,
+                FRAME_FROM_EVENT,
+                frame,
+                beta,
+                depth_m=depth_m,
+                align_px=align,
+                scales=scales,
             )
             np.testing.assert_array_equal(warped.view(np.uint32), want.view(np.uint32))
             assert fused.shape == (140, 180) and fused.dtype == np.uint8

@@ -631,12 +631,17 @@ fn warp_map_apply_fused_is_apply_then_fuse_e3ct_bit_for_bit() {
                         .all(|(a, b)| a.to_bits() == b.to_bits()));
                     assert_eq!(warped.len(), want.len());
                     let want_fused = fuse_e3ct(&frame, &want, c, beta).unwrap();
-                    assert_eq!(fused, want_fused, "{c} channels, β {beta}, {threads} threads");
+                    assert_eq!(
+                        fused, want_fused,
+                        "{c} channels, β {beta}, {threads} threads"
+                    );
                 }
             }
         }
         // Not a trivial blend: with β = 1 some pixels are bright events, some black.
-        let (_, events_only) = map.apply_fused(&src, c, Some(&scales), &frame, 1.0).unwrap();
+        let (_, events_only) = map
+            .apply_fused(&src, c, Some(&scales), &frame, 1.0)
+            .unwrap();
         assert!(events_only.iter().any(|&v| v > 200) && events_only.contains(&0));
         assert!(map.apply_fused(&src, c, None, &frame[1..], 0.5).is_err());
         assert!(map.apply_fused(&src, c, None, &frame, 1.5).is_err());

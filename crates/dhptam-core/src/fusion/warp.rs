@@ -317,7 +317,10 @@ impl WarpMap {
         if frame.len() != self.dst_w * self.dst_h {
             return Err(Error::invalid(
                 "frame",
-                format!("{}×{} pixels, the warp's frame size", self.dst_w, self.dst_h),
+                format!(
+                    "{}×{} pixels, the warp's frame size",
+                    self.dst_w, self.dst_h
+                ),
                 format!("{} pixels", frame.len()),
             ));
         }
@@ -368,11 +371,13 @@ impl WarpMap {
         // Constant channel counts get their own unrolled loops (the E3CT has 3 or 4 channels);
         // `C = 0` is the loop for any count.
         let mut fused = fuse.map(|_| vec![0u8; self.dst_w * self.dst_h]);
-        let blend = fuse.zip(fused.as_deref_mut()).map(|((frame, ab), out)| Blend {
-            frame,
-            out,
-            weights: ab,
-        });
+        let blend = fuse
+            .zip(fused.as_deref_mut())
+            .map(|((frame, ab), out)| Blend {
+                frame,
+                out,
+                weights: ab,
+            });
         match inv.as_deref() {
             None => self.gather_any::<false>(src, channels, out, blend, |s, _| s),
             Some(k) => {
@@ -507,14 +512,7 @@ impl WarpMap {
                     };
                     let first = piece * APPLY_PIECE;
                     let (a, b) = weights;
-                    blend_piece::<C>(
-                        fused,
-                        &frame[first..first + entries.len()],
-                        warped,
-                        c,
-                        a,
-                        b,
-                    );
+                    blend_piece::<C>(fused, &frame[first..first + entries.len()], warped, c, a, b);
                 }
             });
     }
