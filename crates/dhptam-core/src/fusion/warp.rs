@@ -368,8 +368,6 @@ impl WarpMap {
         let n = self.dst_w * self.dst_h * channels;
         let mut dst: Vec<f32> = Vec::with_capacity(n);
         let out = &mut dst.spare_capacity_mut()[..n];
-        // Constant channel counts get their own unrolled loops (the E3CT has 3 or 4 channels);
-        // `C = 0` is the loop for any count.
         let mut fused = fuse.map(|_| vec![0u8; self.dst_w * self.dst_h]);
         let blend = fuse
             .zip(fused.as_deref_mut())
@@ -378,6 +376,8 @@ impl WarpMap {
                 out,
                 weights: ab,
             });
+        // Constant channel counts get their own unrolled loops (the E3CT has 3 or 4 channels);
+        // `C = 0` is the loop for any count.
         match inv.as_deref() {
             None => self.gather_any::<false>(src, channels, out, blend, |s, _| s),
             Some(k) => {
