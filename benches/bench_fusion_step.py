@@ -9,15 +9,17 @@ issue's target for the whole step is ≤ 10 ms on 2 cores. Prints a Markdown tab
 ``--repeats`` per stage and for the whole step, wall time and the process CPU time of all
 threads, which a shared machine inflates less) with the rayon thread count and the load.
 
-The step runs as the front-end runs it: the normalisation happens inside the warp
-(``warp_to_frame(raw, scales=...)``, tap by tap), whose inverse map is built on the first
-call for these sizes and reused (the first call's time is printed apart).
+The step runs as the front-end runs it: β from each frame first, then one pass per side
+that normalises inside the warp (tap by tap) and blends the warped tensor with the frame
+while it is in cache (``warp_and_fuse``); the warp's inverse map is built on the first call
+for these sizes and reused (the first call's time is printed apart).
 
 ``--previous PATH`` also runs the step with another build of ``dhptam._core`` (e.g. the
 extension built from main before this work), loaded side by side in the same process, the
-way that build's front-end ran it (scales, normalised copies, then the warp); the warped
-tensors and the fused images of both are checked equal bit for bit first, and the table gets
-the previous build's columns and the ratios from the same run (the two steps alternate).
+way main's front-end ran it before the blend moved into the warp (scales, β, the warp with
+the scales, then ``_fuse``); the warped tensors and the fused images of both are checked
+equal bit for bit first, and the table gets the previous build's columns and the ratios from
+the same run (the two steps alternate).
 
     python benches/bench_fusion_step.py [--repeats 7] [--previous OLD/_core.abi3.so]
     RAYON_NUM_THREADS=1 python benches/bench_fusion_step.py
@@ -46,7 +48,7 @@ def now() -> Mark:
     return time.perf_counter(), time.process_time()
 
 
-NAMES = ("2 × rectify", "2 × e3ct", "normalise", "2 × warp", "2 × (β + fuse)", "total")
+NAMES = ("2 × rectify", "2 × e3ct", "scales", "2 × β", "2 × (warp + fuse)", "total")
 
 
 def main() -> None:
@@ -65,9 +67,9 @@ def main() -> None:
     k_event, k_frame = [k[0, 0], k[1, 1], k[0, 2], k[1, 2]], [750.0, 750.0, 511.5, 511.5]
     frame_from_event = SE3(SO3.exp([0.01, -0.015, 0.004]), [0.02, 0.03, 0.0])
 
-    def step(m: ModuleType, fused_normalise: bool) -> Callable[[], tuple[list[Mark], list[np.ndarray]]]:
+    def step(m: ModuleType, fused_blend: bool) -> Callable[[], tuple[list[Mark], list[np.ndarray]]]:
         """The step with module ``m``: returns the stage marks and the warped tensors + fused images
-        (``fused_normalise``: the normalisation inside the warp; else normalised copies first)."""
+        (``fused_blend``: the blend inside the warp, ``_warp_and_fuse``; else warp, then fuse)."""
         # The same rig rebuilt with the module's own classes (another build's types differ).
         cam = [
             m.Camera(c.model, list(c.params), c.width, c.height)
@@ -81,9 +83,16 @@ def main() -> None:
             m.SE3(m.SO3.exp([0.01, -0.015, 0.004]), [0.02, 0.03, 0.0]) if m is not _core else frame_from_event
         )
 
-        def warp(image: np.ndarray, scales: list[float] | None) -> np.ndarray:
-            extra = () if scales is None else (None, scales)
-            return m._warp_to_frame(image, k_event, k_frame, pose, 2.0, (0.0, 0.0), FRAME, FRAME, *extra)[0]
+        def warp_fuse(
+            image: np.ndarray, scales: list[float], frame: np.ndarray, beta: float
+        ) -> list[np.ndarray]:
+            if fused_blend:
+                args = (image, k_event, k_frame, pose, 2.0, (0.0, 0.0), frame, beta, scales)
+                return list(m._warp_and_fuse(*args))
+            warped = m._warp_to_frame(
+                image, k_event, k_frame, pose, 2.0, (0.0, 0.0), FRAME, FRAME, None, scales
+            )[0]
+            return [warped, m._fuse(frame, warped, beta)]
 
         def run() -> tuple[list[Mark], list[np.ndarray]]:
             t0 = now()
@@ -92,16 +101,12 @@ def main() -> None:
             raw = [m._e3ct(*s, rw, rh, 0, SPAN_NS, 0.5, 30.0, 3, "both") for s in rectified]
             t2 = now()
             scales = m._e3ct_scales(raw, 99.0)
-            if not fused_normalise:
-                raw = [m._e3ct_apply_scales(t, scales) for t in raw]
             t3 = now()
-            warped = [warp(t, scales if fused_normalise else None) for t in raw]
+            betas = [m._choose_beta(f, None, None)[1] for f in frames]
             t4 = now()
-            fused = [
-                m._fuse(f, d, m._choose_beta(f, None, None)[1]) for f, d in zip(frames, warped, strict=True)
-            ]
+            out = [warp_fuse(t, scales, f, b) for t, f, b in zip(raw, frames, betas, strict=True)]
             t5 = now()
-            return [t0, t1, t2, t3, t4, t5], warped + fused
+            return [t0, t1, t2, t3, t4, t5], [a for pair in out for a in pair]
 
         return run
 
@@ -124,7 +129,7 @@ def main() -> None:
     ours = step(_core, True)
     t_first = time.perf_counter()
     marks, mine = ours()
-    first_warp = (marks[4][0] - marks[3][0]) * 1e3
+    first_warp = (marks[5][0] - marks[4][0]) * 1e3
     t_first = time.perf_counter() - t_first
     rectifiers = [_core.EventRectifier(rect, side) for side in ("left", "right")]
     kept = [len(r.apply(*s, 0, SPAN_NS)[0]) for r, s in zip(rectifiers, sides, strict=True)]

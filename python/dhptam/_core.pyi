@@ -33,6 +33,7 @@ __all__ = [
     "_time_surface",
     "_triangulate",
     "_voxel_grid",
+    "_warp_and_fuse",
     "_warp_to_frame",
     "sim_builtin_trajectory",
     "sim_file_trajectory",
@@ -303,6 +304,17 @@ def _warp_to_frame(
     pixels: _ArrayLike | None = None,
     scales: _ArrayLike | None = None,
 ) -> tuple[_F32, _FloatArray | None]: ...
+def _warp_and_fuse(
+    image: _F32,
+    k_event: _ArrayLike,
+    k_frame: _ArrayLike,
+    frame_from_event: SE3,
+    depth_m: float,
+    align_px: _ArrayLike,
+    frame: npt.NDArray[np.uint8],
+    beta: float,
+    scales: _ArrayLike | None = None,
+) -> tuple[_F32, npt.NDArray[np.uint8]]: ...
 def _solve_bal_file(
     path: str | os.PathLike[str],
     *,

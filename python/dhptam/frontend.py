@@ -9,8 +9,8 @@ For fusion frame k (time ``t_f^k = t_cam + t_exp / 2``) the pipeline is
 3. the E3CT of each side, normalised with per-channel scales shared by left and right;
 4. warped into the **rectified frame camera** of the same side (``warp_to_frame``: eq. 5
    with a real perspective divide through a fronto-parallel plane, plus δP_align);
-5. β chosen online from the rectified frame (APS/DVS bias, ``[fusion]``) and the blend
-   ``(1 − β) C + β D``.
+5. β chosen online from the rectified frame (APS/DVS bias, ``[fusion]``; before step 4) and
+   the blend ``(1 − β) C + β D``, done in the warp's pass (``warp_and_fuse``).
 
 Modes: ``fusion`` (the above), ``frames`` (rectified frames only; no event is read) and
 ``events`` (the warped E3CT intensity alone, β = 1).
@@ -56,7 +56,7 @@ from ._prefetch import prefetched
 from .datasets import EventWindow, Sequence
 from .errors import InputError
 from .events import e3ct, shared_scales
-from .fusion import choose_beta, fuse, warp_to_frame
+from .fusion import choose_beta, fuse, warp_and_fuse, warp_to_frame
 from .geometry import SE3, RectifiedStereo, StereoRig
 
 MODES = ("fusion", "frames", "events")
@@ -510,29 +510,36 @@ class Frontend:
         return tensors, stats
 
     def _warp_tensors(
-        self, tensors: list[_F32], scales: tuple[float, ...], depth_m: float
-    ) -> dict[str, _F32]:
+        self,
+        tensors: list[_F32],
+        scales: tuple[float, ...],
+        depth_m: float,
+        frames: dict[str, _U8],
+        betas: dict[str, tuple[str, float]],
+    ) -> tuple[dict[str, _F32], dict[str, _U8]]:
         """The raw E3CTs (left, right) normalised with ``scales`` inside the warp (tap by tap,
-        the same values as normalise() then warp) and warped through the plane at ``depth_m``."""
+        the same values as normalise() then warp), warped through the plane at ``depth_m``, and
+        their blend with ``frames`` at ``betas`` done in the same pass."""
         k_event = self.event_rect.K
         k_frame = self.frame_rect.K
         ke = [k_event[0, 0], k_event[1, 1], k_event[0, 2], k_event[1, 2]]
         kf = [k_frame[0, 0], k_frame[1, 1], k_frame[0, 2], k_frame[1, 2]]
-        out = {}
+        out: dict[str, _F32] = {}
+        fused: dict[str, _U8] = {}
         for side, tensor in zip(("left", "right"), tensors, strict=True):
-            warped, _ = warp_to_frame(
+            # fuse() takes the per-pixel largest channel as the event intensity D.
+            out[side], fused[side] = warp_and_fuse(
                 tensor,
                 ke,
                 kf,
                 self.frame_from_event[side],
-                width=int(self.frame_rect.width),
-                height=int(self.frame_rect.height),
+                frames[side],
+                betas[side][1],
                 depth_m=depth_m,
                 align_px=self.align_px,
                 scales=scales,
             )
-            out[side] = warped
-        return out
+        return out, fused
 
     # -- warp depth from the tracker (``[fusion] warp_depth``) ---------------------------------
 
@@ -602,8 +609,6 @@ class Frontend:
         if not (np.isfinite(depth) and depth >= 0.0):
             raise InputError(f"depth_m must be >= 0 (0: infinity), got {depth_m!r}", field="depth_m")
         stats = prepared.stats
-        events = self._warp_tensors(list(prepared.tensors), stats.scales, depth)
-        images: dict[str, _U8] = {}
         betas: dict[str, tuple[str, float]] = {}
         for side in ("left", "right"):
             if self.mode == "events":
@@ -612,8 +617,8 @@ class Frontend:
                 count = None if self.feature_counter is None else int(self.feature_counter(frames[side]))
                 d = choose_beta(frames[side], count, self.config)
                 betas[side] = (d.bias, d.beta)
-            # fuse() takes the per-pixel largest channel as the event intensity D.
-            images[side] = fuse(frames[side], events[side], betas[side][1])
+        # β depends on the frame only, so the blend happens inside the warp (warp_and_fuse).
+        events, images = self._warp_tensors(list(prepared.tensors), stats.scales, depth, frames, betas)
         return FrontendFrame(
             index=index,
             t_ns=t_ns,

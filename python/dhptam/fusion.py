@@ -95,4 +95,34 @@ def warp_to_frame(
     )
 
 
-__all__ = ["BetaDecision", "choose_beta", "fuse", "warp_to_frame"]
+def warp_and_fuse(
+    image: npt.NDArray[np.float32],
+    k_event: npt.ArrayLike,
+    k_frame: npt.ArrayLike,
+    frame_from_event: SE3,
+    frame: npt.NDArray[np.uint8],
+    beta: float,
+    *,
+    depth_m: float = 0.0,
+    align_px: npt.ArrayLike = (0.0, 0.0),
+    scales: npt.ArrayLike | None = None,
+) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.uint8]]:
+    """:func:`warp_to_frame` into the frame camera of ``frame`` (its size) and :func:`fuse` of
+    the result with ``frame`` at ``beta``, in one pass: returns ``(warped, fused)``, the same
+    values as the two calls, without reading the warped tensor back from memory. ``beta``
+    comes from :func:`choose_beta` of the frame, before the warp.
+    """
+    return _core._warp_and_fuse(
+        np.ascontiguousarray(image, dtype=np.float32),
+        k_event,
+        k_frame,
+        frame_from_event,
+        float(depth_m),
+        align_px,
+        np.ascontiguousarray(frame, dtype=np.uint8),
+        float(beta),
+        None if scales is None else [float(s) for s in np.asarray(scales, np.float32).ravel()],
+    )
+
+
+__all__ = ["BetaDecision", "choose_beta", "fuse", "warp_and_fuse", "warp_to_frame"]

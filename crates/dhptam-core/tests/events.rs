@@ -385,6 +385,24 @@ fn scales_equal_a_sorted_nearest_rank_on_random_tensors() {
             );
         }
     }
+    // Every channel count (1–4 and 6 have their own unrolled pass, 5 and 7 the general one),
+    // with a ragged last piece (70,001 pixels).
+    for channels in 1..=7usize {
+        let t = tensor(channels * 70_001);
+        let got = channel_scales(&[&t], channels, 99.0).unwrap();
+        for (ch, &scale) in got.iter().enumerate() {
+            let mut values: Vec<f32> = t
+                .iter()
+                .skip(ch)
+                .step_by(channels)
+                .filter(|v| **v != 0.0)
+                .map(|v| v.abs())
+                .collect();
+            values.sort_by(f32::total_cmp);
+            let rank = ((0.99 * values.len() as f64).ceil() as usize).clamp(1, values.len());
+            assert_eq!(scale, values[rank - 1], "{channels} channels, channel {ch}");
+        }
+    }
     let mut bad = a.clone();
     bad[3 * 10 + 2] = f32::NAN;
     let err = channel_scales(&[&b, &bad], 3, 99.0).unwrap_err();

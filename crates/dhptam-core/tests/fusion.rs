@@ -279,6 +279,37 @@ fn event_rectifier_apply_is_the_per_event_lookup_for_any_thread_count() {
     }
     let empty = EventSlice::new(&[], &[], &[], &[]).unwrap();
     assert_eq!(lut.apply(&empty, 0, 1).unwrap(), Default::default());
+    // Validation runs chunk by chunk inside the lookup pass: an out-of-range pixel in a later
+    // chunk is reported (not looked up), and with bad events in two chunks the error names
+    // the first one, whatever the thread count.
+    let (mut bx, mut by, mut bt) = (x.clone(), y.clone(), t.clone());
+    bx[150_000] = 1280;
+    by[190_000] = 720;
+    bt[70_000] = 5; // decreasing time
+    for threads in [1, 2, 3] {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        let bad = EventSlice::new(&bx, &by, &bt, &p).unwrap();
+        let err = pool
+            .install(|| lut.apply(&bad, 0, n as i64))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("event 70000 "), "{threads} threads: {err}");
+        let bad = EventSlice::new(&bx, &by, &t, &p).unwrap();
+        let err = pool
+            .install(|| lut.apply(&bad, 0, n as i64))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("event 150000 "), "{threads} threads: {err}");
+        let bad = EventSlice::new(&x, &by, &t, &p).unwrap();
+        let err = pool
+            .install(|| lut.apply(&bad, 0, n as i64))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("event 190000 "), "{threads} threads: {err}");
+    }
 }
 
 trait LenCheck {
@@ -535,6 +566,86 @@ fn warp_map_with_scales_is_normalise_then_warp_bit_for_bit() {
         assert!(map.apply(&src, c, Some(&[1.0, 0.0, 1.0])).is_err());
         assert!(map.apply(&src, c, Some(&scales[..2])).is_err());
         assert!(map.apply(&src[1..], c, None).is_err());
+    }
+}
+
+#[test]
+fn warp_map_apply_fused_is_apply_then_fuse_e3ct_bit_for_bit() {
+    let k_event = dhptam_core::geometry::Pinhole {
+        fx: 500.0,
+        fy: 500.0,
+        cx: 63.5,
+        cy: 47.5,
+    };
+    let k_frame = dhptam_core::geometry::Pinhole {
+        fx: 560.0,
+        fy: 560.0,
+        cx: 90.0,
+        cy: 70.0,
+    };
+    let frame_from_event = Se3::new(
+        So3::exp(&Vector3::new(0.01, -0.02, 0.005)),
+        Vector3::new(0.03, 0.01, 0.0),
+    );
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let (sw, sh) = (128usize, 96usize);
+    // Two pieces of the parallel pass (16,384 pixels each), the second ragged; frame pixels
+    // outside the event image and on its border.
+    let (fw, fh) = (180usize, 140usize);
+    let frame: Vec<u8> = (0..fw * fh).map(|_| rng.random_range(0..=255u8)).collect();
+    let warp = EventFrameWarp::new(
+        k_event,
+        k_frame,
+        frame_from_event,
+        Depth::Plane { depth_m: 1.5 },
+        Vector2::new(0.7, -1.2),
+    )
+    .unwrap();
+    let map = warp.map(sw, sh, fw, fh).unwrap();
+    // 3 channels (an unrolled loop) and 5 (the general one).
+    for c in [3usize, 5] {
+        let src: Vec<f32> = (0..sw * sh * c)
+            .map(|_| {
+                if rng.random_bool(0.3) {
+                    rng.random_range(0.0..3.0f32)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let scales = channel_scales(&[&src], c, 99.0).unwrap();
+        for scale in [None, Some(scales.as_slice())] {
+            for beta in [0.0, 0.37, 1.0] {
+                for threads in [1, 2] {
+                    let pool = rayon::ThreadPoolBuilder::new()
+                        .num_threads(threads)
+                        .build()
+                        .unwrap();
+                    let (warped, fused) = pool
+                        .install(|| map.apply_fused(&src, c, scale, &frame, beta))
+                        .unwrap();
+                    let want = map.apply(&src, c, scale).unwrap();
+                    assert!(warped
+                        .iter()
+                        .zip(&want)
+                        .all(|(a, b)| a.to_bits() == b.to_bits()));
+                    assert_eq!(warped.len(), want.len());
+                    let want_fused = fuse_e3ct(&frame, &want, c, beta).unwrap();
+                    assert_eq!(
+                        fused, want_fused,
+                        "{c} channels, β {beta}, {threads} threads"
+                    );
+                }
+            }
+        }
+        // Not a trivial blend: with β = 1 some pixels are bright events, some black.
+        let (_, events_only) = map
+            .apply_fused(&src, c, Some(&scales), &frame, 1.0)
+            .unwrap();
+        assert!(events_only.iter().any(|&v| v > 200) && events_only.contains(&0));
+        assert!(map.apply_fused(&src, c, None, &frame[1..], 0.5).is_err());
+        assert!(map.apply_fused(&src, c, None, &frame, 1.5).is_err());
+        assert!(map.apply_fused(&src[1..], c, None, &frame, 0.5).is_err());
     }
 }
 

@@ -208,6 +208,75 @@ pub fn _warp_to_frame<'py>(
     Ok((out, warped))
 }
 
+/// `_warp_to_frame` of `image` into the frame camera of `frame` (its size) and, in the same
+/// pass, `_fuse(frame, warped, beta)`: returns `(warped, fused)`, the same values as the two
+/// calls, without reading the warped image back (β is chosen from the frame before the warp).
+#[pyfunction]
+#[pyo3(signature = (image, k_event, k_frame, frame_from_event, depth_m, align_px, frame, beta, scales=None))]
+#[allow(clippy::too_many_arguments)]
+pub fn _warp_and_fuse<'py>(
+    py: Python<'py>,
+    image: PyReadonlyArray3<'py, f32>,
+    k_event: &Bound<'py, PyAny>,
+    k_frame: &Bound<'py, PyAny>,
+    frame_from_event: &PySe3,
+    depth_m: f64,
+    align_px: &Bound<'py, PyAny>,
+    frame: PyReadonlyArray2<'py, u8>,
+    beta: f64,
+    scales: Option<Vec<f32>>,
+) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<u8>>)> {
+    let depth = if depth_m == 0.0 {
+        Depth::Infinity
+    } else {
+        Depth::Plane { depth_m }
+    };
+    let [ax, ay] = arrays::vector::<2>(align_px, "align_px")?;
+    let warp = EventFrameWarp::new(
+        pinhole(k_event, "k_event")?,
+        pinhole(k_frame, "k_frame")?,
+        frame_from_event.inner,
+        depth,
+        Vector2::new(ax, ay),
+    )
+    .py()?;
+    let (sh, sw, c) = (image.shape()[0], image.shape()[1], image.shape()[2]);
+    let (height, width) = (frame.shape()[0], frame.shape()[1]);
+    let src = image
+        .as_slice()
+        .map_err(|_| input_error("image", "a C-contiguous float32 array", "a strided view"))?;
+    let pixels = frame
+        .as_slice()
+        .map_err(|_| input_error("frame", "a C-contiguous uint8 image", "a strided view"))?;
+    if let Some(scales) = &scales {
+        if scales.len() != c {
+            return Err(input_error(
+                "scales",
+                &format!("{c} scales, one per channel of image"),
+                format!("{} scales", scales.len()),
+            ));
+        }
+    }
+    let (warped, fused) = py
+        .detach_guarded("fusion::_warp_and_fuse", || {
+            cached_map(&warp, [ax, ay], [sw, sh, width, height])?.apply_fused(
+                src,
+                c,
+                scales.as_deref(),
+                pixels,
+                beta,
+            )
+        })?
+        .py()?;
+    let warped = Array3::from_shape_vec((height, width, c), warped)
+        .map_err(|e| input_error("image", "a consistent size", e))?
+        .into_pyarray(py);
+    let fused = Array2::from_shape_vec((height, width), fused)
+        .map_err(|e| input_error("frame", "a consistent size", e))?
+        .into_pyarray(py);
+    Ok((warped, fused))
+}
+
 /// Rectified event arrays `(x uint16, y uint16, t_ns int64, p int8)`.
 type RectifiedArrays<'py> = (
     Bound<'py, PyArray1<u16>>,

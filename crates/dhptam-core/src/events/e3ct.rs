@@ -561,38 +561,40 @@ pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> R
         .iter()
         .flat_map(|t| t.chunks(SCALE_PIECE_PIXELS * channels))
         .collect();
-    // Pass 1, per piece and channel: the bit patterns of the non-zero magnitudes, compacted
-    // without a branch per value (most values are 0, in no predictable pattern), their
+    // Pass 1, per piece: the bit patterns of each channel's non-zero magnitudes, compacted in
+    // one pass over the piece without a branch per value ([`compact_piece`]), their
     // histogram, and whether any value is not finite.
     struct Found {
         hist: Vec<u64>,
         lists: Vec<Vec<u32>>,
         non_finite: bool,
         scratch: Vec<u32>,
+        kept: Vec<usize>,
     }
     let empty = || Found {
         hist: vec![0; channels * SCALE_BINS],
         lists: Vec::new(),
         non_finite: false,
         scratch: Vec::new(),
+        kept: Vec::new(),
     };
     let found = pieces
         .par_iter()
         .fold(empty, |mut found, piece| {
             let pixels = piece.len() / channels;
-            found.scratch.resize(pixels, 0);
-            for ch in 0..channels {
-                let mut kept = 0;
-                let mut bad = false;
-                for (k, &v) in piece[ch..].iter().step_by(channels).enumerate() {
-                    let bits = v.to_bits() & 0x7FFF_FFFF;
-                    bad |= bits >= 0x7F80_0000;
-                    // Written unconditionally, kept by advancing past it (kept ≤ k < pixels).
-                    found.scratch[kept.min(k)] = bits;
-                    kept += usize::from(bits != 0);
-                }
-                found.non_finite |= bad;
-                let list = found.scratch[..kept].to_vec();
+            found.scratch.resize(pixels * channels, 0);
+            found.kept.clear();
+            found.kept.resize(channels, 0);
+            found.non_finite |= match channels {
+                1 => compact_piece::<1>(piece, 1, &mut found.scratch, &mut found.kept),
+                2 => compact_piece::<2>(piece, 2, &mut found.scratch, &mut found.kept),
+                3 => compact_piece::<3>(piece, 3, &mut found.scratch, &mut found.kept),
+                4 => compact_piece::<4>(piece, 4, &mut found.scratch, &mut found.kept),
+                6 => compact_piece::<6>(piece, 6, &mut found.scratch, &mut found.kept),
+                c => compact_piece::<0>(piece, c, &mut found.scratch, &mut found.kept),
+            };
+            for (ch, plane) in found.scratch.chunks_exact(pixels.max(1)).enumerate() {
+                let list = plane[..found.kept[ch]].to_vec();
                 let hist = &mut found.hist[ch * SCALE_BINS..(ch + 1) * SCALE_BINS];
                 for &bits in &list {
                     hist[(bits >> SCALE_BIN_SHIFT) as usize] += 1;
@@ -639,21 +641,25 @@ pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> R
             None
         })
         .collect();
-    // Pass 2: the magnitudes (as bits) of the wanted bin of every channel.
-    let gathered: Vec<Vec<u32>> = (0..channels)
-        .into_par_iter()
-        .map(|ch| match wanted[ch] {
-            Some((bin, _)) => found
-                .lists
+    // Pass 2: the magnitudes (as bits) of the wanted bin of every channel, list by list in
+    // parallel (lists are in piece order, list i of channel i % C), then joined per channel.
+    let per_list: Vec<Vec<u32>> = found
+        .lists
+        .par_iter()
+        .enumerate()
+        .map(|(i, list)| match wanted[i % channels] {
+            Some((bin, _)) => list
                 .iter()
-                .skip(ch)
-                .step_by(channels)
-                .flat_map(|list| list.iter().copied())
+                .copied()
                 .filter(|bits| bits >> SCALE_BIN_SHIFT == bin)
                 .collect(),
             None => Vec::new(),
         })
         .collect();
+    let mut gathered: Vec<Vec<u32>> = vec![Vec::new(); channels];
+    for (i, list) in per_list.into_iter().enumerate() {
+        gathered[i % channels].extend(list);
+    }
     Ok(wanted
         .iter()
         .zip(gathered)
@@ -666,6 +672,39 @@ pub fn channel_scales(tensors: &[&[f32]], channels: usize, percentile: f64) -> R
             _ => 1.0,
         })
         .collect())
+}
+
+/// Pass 1 of [`channel_scales`] on one piece of `c` interleaved channels (`c = C` when
+/// `C > 0`, so that the loop over a pixel's channels unrolls): the bit patterns of the
+/// non-zero magnitudes of channel `ch` are compacted, in pixel order, to the front of plane
+/// `ch` of `scratch` (`c` planes of one value per pixel) and counted in `kept[ch]`; returns
+/// whether any value is not finite. One pass over the piece, without a branch per value
+/// (most values are 0, in no predictable pattern): every value is written to its plane's
+/// next free slot, which only a non-zero value then moves past.
+fn compact_piece<const C: usize>(
+    piece: &[f32],
+    c: usize,
+    scratch: &mut [u32],
+    kept: &mut [usize],
+) -> bool {
+    let c = if C > 0 { C } else { c };
+    let pixels = piece.len() / c;
+    assert!(scratch.len() >= pixels * c && kept.len() == c);
+    let mut bad = false;
+    for (k, px) in piece.chunks_exact(c).enumerate() {
+        for (ch, &v) in px.iter().enumerate() {
+            let bits = v.to_bits() & 0x7FFF_FFFF;
+            bad |= bits >= 0x7F80_0000;
+            let slot = ch * pixels + kept[ch];
+            debug_assert!(kept[ch] <= k && k < pixels);
+            // SAFETY: kept[ch] counts non-zero values among the k values of the plane before
+            // this one, so kept[ch] ≤ k < pixels and the slot lies in plane ch, inside
+            // `scratch` (asserted to hold c planes of `pixels` values).
+            unsafe { *scratch.get_unchecked_mut(slot) = bits };
+            kept[ch] += usize::from(bits != 0);
+        }
+    }
+    bad
 }
 
 /// Divides each channel by its scale and clips to `[0, 1]`, in place.

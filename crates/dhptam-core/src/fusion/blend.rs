@@ -219,14 +219,36 @@ fn blend_pieces<const C: usize>(
     a: f32,
     b: f32,
 ) {
-    let c = if C > 0 { C } else { c };
     out.par_chunks_mut(BETA_PIECE)
         .zip(frame.par_chunks(BETA_PIECE))
         .zip(e3ct.par_chunks(BETA_PIECE * c))
-        .for_each(|((out, frame), e3ct)| {
-            for ((o, &f), px) in out.iter_mut().zip(frame).zip(e3ct.chunks_exact(c)) {
-                let d = (0..c).fold(0.0f32, |m, k| m.max(px[k])).clamp(0.0, 1.0);
-                *o = (a * f32::from(f) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8;
-            }
-        });
+        .for_each(|((out, frame), e3ct)| blend_piece::<C>(out, frame, e3ct, c, a, b));
+}
+
+/// The blend weights `(1 − β, 255 β)` of [`fuse`], after checking β.
+pub(crate) fn blend_weights(beta: f64) -> Result<(f32, f32)> {
+    if !(0.0..=1.0).contains(&beta) {
+        return Err(Error::invalid("beta", "a weight in [0, 1]", beta));
+    }
+    Ok(((1.0 - beta) as f32, (beta * 255.0) as f32))
+}
+
+/// One piece of [`fuse_e3ct`] (`c = C` channels when `C > 0`), with the weights of
+/// [`blend_weights`]: `out[i]` from `frame[i]` and pixel `i` of `e3ct`. Shared with the warp
+/// that blends while its output is in cache (`WarpMap::apply_fused`), so both give the same
+/// values.
+#[inline]
+pub(crate) fn blend_piece<const C: usize>(
+    out: &mut [u8],
+    frame: &[u8],
+    e3ct: &[f32],
+    c: usize,
+    a: f32,
+    b: f32,
+) {
+    let c = if C > 0 { C } else { c };
+    for ((o, &f), px) in out.iter_mut().zip(frame).zip(e3ct.chunks_exact(c)) {
+        let d = (0..c).fold(0.0f32, |m, k| m.max(px[k])).clamp(0.0, 1.0);
+        *o = (a * f32::from(f) + b * d.clamp(0.0, 1.0) + 0.5).min(255.0) as u8;
+    }
 }

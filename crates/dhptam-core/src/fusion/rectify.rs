@@ -8,10 +8,13 @@
 //! dropped — they have no pixel to land on, unlike out-of-range raw coordinates, which are
 //! still errors.
 
+use std::mem::MaybeUninit;
+
 use nalgebra::Vector2;
 use rayon::prelude::*;
 
 use crate::error::Result;
+use crate::events::window::check_frame;
 use crate::events::EventSlice;
 use crate::geometry::rectify::{RectifiedStereo, Side};
 
@@ -109,30 +112,45 @@ impl EventRectifier {
         t_start_ns: i64,
         t_end_ns: i64,
     ) -> Result<RectifiedEvents> {
-        events.validate(self.width, self.height, t_start_ns, t_end_ns)?;
+        check_frame(self.width, self.height, t_start_ns, t_end_ns)?;
         let n = events.len();
-        // Pass 1: the rectified pixel index of every event (or OUTSIDE) and, per chunk, the
-        // kept count, which places each chunk's output after the previous chunks' outputs.
-        // Allocated without zeroing: every slot is written here, every output value below.
+        // Pass 1, chunk by chunk: the chunk's events validated (see `EventSlice::validate`)
+        // while its arrays come into cache, then the rectified pixel index of every event (or
+        // OUTSIDE) and the chunk's kept count, which places each chunk's output after the
+        // previous chunks' outputs. Allocated without zeroing: every slot is written here,
+        // every output value below. A chunk with an invalid event stops before its lookups
+        // (the table is only read at valid raw pixels) and reports its first invalid event.
         let mut index: Vec<u32> = Vec::with_capacity(n);
-        let width = self.width as usize;
-        let counts: Vec<usize> = index.spare_capacity_mut()[..n]
+        let counts: Vec<std::result::Result<usize, usize>> = index.spare_capacity_mut()[..n]
             .par_chunks_mut(APPLY_CHUNK)
             .enumerate()
             .map(|(c, out)| {
                 let start = c * APPLY_CHUNK;
-                let xs = &events.x[start..start + out.len()];
-                let ys = &events.y[start..start + out.len()];
-                let mut kept = 0;
-                for ((slot, &u), &v) in out.iter_mut().zip(xs).zip(ys) {
-                    // validate() guaranteed u < width and v < height.
-                    let entry = self.table[usize::from(v) * width + usize::from(u)];
-                    slot.write(entry);
-                    kept += usize::from(entry != OUTSIDE);
+                let end = start + out.len();
+                if let Some(bad) =
+                    events.first_invalid(start..end, self.width, self.height, t_start_ns, t_end_ns)
+                {
+                    return Err(bad);
                 }
-                kept
+                let xs = &events.x[start..end];
+                let ys = &events.y[start..end];
+                // Validated above: u < width and v < height.
+                Ok(self.lookup_chunk(xs, ys, out))
             })
             .collect();
+        // The first invalid event of the window lies in the first chunk reporting one.
+        let counts: Vec<usize> = match counts.iter().find_map(|c| c.err()) {
+            Some(bad) => {
+                return Err(events.invalid_event(
+                    bad,
+                    self.width,
+                    self.height,
+                    t_start_ns,
+                    t_end_ns,
+                ))
+            }
+            None => counts.into_iter().flatten().collect(),
+        };
         // SAFETY: the chunks above cover all `n` slots and each wrote every one of its slots.
         unsafe { index.set_len(n) };
         let total: usize = counts.iter().sum();
@@ -154,16 +172,15 @@ impl EventRectifier {
             .for_each(|(c, ((xo, yo), (to, po)))| {
                 let start = c * APPLY_CHUNK;
                 let end = (start + APPLY_CHUNK).min(n);
-                let mut j = 0;
-                for (k, &e) in (start..end).zip(&index[start..end]) {
-                    if e != OUTSIDE {
-                        xo[j].write((e & 0xFFFF) as u16);
-                        yo[j].write((e >> 16) as u16);
-                        to[j].write(events.t_ns[k]);
-                        po[j].write(events.p[k]);
-                        j += 1;
-                    }
-                }
+                compact_chunk(
+                    &index[start..end],
+                    &events.t_ns[start..end],
+                    &events.p[start..end],
+                    xo,
+                    yo,
+                    to,
+                    po,
+                );
             });
         // SAFETY: chunk c kept exactly counts[c] events (pass 1 counted the same test), so it
         // wrote every slot of its ranges, and the ranges cover `total` slots of each array.
@@ -174,6 +191,70 @@ impl EventRectifier {
             p.set_len(total);
         }
         Ok(RectifiedEvents { x, y, t_ns, p })
+    }
+}
+
+impl EventRectifier {
+    /// Pass 1 of [`Self::apply`] on one chunk of valid events: `out[k]` = the table entry of
+    /// raw pixel `(xs[k], ys[k])`; returns how many are not [`OUTSIDE`]. The table (4 bytes per
+    /// raw pixel, megabytes) is read at random, so the entry of the event `PREFETCH` places
+    /// ahead is requested early, while the current ones are read.
+    fn lookup_chunk(&self, xs: &[u16], ys: &[u16], out: &mut [MaybeUninit<u32>]) -> usize {
+        let (n, width) = (out.len(), self.width as usize);
+        assert!(xs.len() == n && ys.len() == n);
+        let table = &self.table[..];
+        let place = |k: usize| usize::from(ys[k]) * width + usize::from(xs[k]);
+        let mut kept = 0;
+        for k in 0..n {
+            #[cfg(target_arch = "x86_64")]
+            if k + PREFETCH < n {
+                if let Some(entry) = table.get(place(k + PREFETCH)) {
+                    // SAFETY: a prefetch hint only; the address is that of a table entry.
+                    unsafe {
+                        std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                            (entry as *const u32).cast::<i8>(),
+                        )
+                    };
+                }
+            }
+            let entry = table[place(k)];
+            out[k].write(entry);
+            kept += usize::from(entry != OUTSIDE);
+        }
+        kept
+    }
+}
+
+/// How far ahead [`EventRectifier::lookup_chunk`] prefetches table entries, in events.
+const PREFETCH: usize = 24;
+
+/// Pass 2 of [`EventRectifier::apply`] on one chunk: the kept events (`index[k]` not
+/// [`OUTSIDE`]) written, in order, to the chunk's output ranges, which hold exactly that many.
+/// Compacted without a branch on the entry (events outside the rectified view fall anywhere
+/// in the stream): every event is written to the next free slot, which only a kept event then
+/// moves past; the bounds test only fails after the chunk's last kept event. A function of
+/// its own, so that the output slices are known not to overlap each other.
+fn compact_chunk(
+    index: &[u32],
+    t_ns: &[i64],
+    p: &[i8],
+    xo: &mut [MaybeUninit<u16>],
+    yo: &mut [MaybeUninit<u16>],
+    to: &mut [MaybeUninit<i64>],
+    po: &mut [MaybeUninit<i8>],
+) {
+    let len = xo.len();
+    assert!(yo.len() == len && to.len() == len && po.len() == len);
+    assert!(t_ns.len() == index.len() && p.len() == index.len());
+    let mut j = 0;
+    for ((&e, &t), &q) in index.iter().zip(t_ns).zip(p) {
+        if j < len {
+            xo[j].write((e & 0xFFFF) as u16);
+            yo[j].write((e >> 16) as u16);
+            to[j].write(t);
+            po[j].write(q);
+        }
+        j += usize::from(e != OUTSIDE);
     }
 }
 

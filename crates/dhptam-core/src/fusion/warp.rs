@@ -22,6 +22,7 @@ use std::mem::MaybeUninit;
 use nalgebra::{Matrix3, Vector2, Vector3};
 use rayon::prelude::*;
 
+use super::blend::{blend_piece, blend_weights};
 use crate::error::{ensure_finite, Error, Result};
 use crate::geometry::{Pinhole, Se3};
 
@@ -219,6 +220,13 @@ impl EventFrameWarp {
     }
 }
 
+/// The frame, the output and the weights `(1 − β, 255 β)` of a blend done inside the warp.
+struct Blend<'a> {
+    frame: &'a [u8],
+    out: &'a mut [u8],
+    weights: (f32, f32),
+}
+
 /// Marks a frame pixel of a [`WarpMap`] whose four taps are not all inside the event image.
 const NO_SOURCE: u32 = u32::MAX;
 
@@ -281,12 +289,54 @@ impl WarpMap {
     ///
     /// With `scales` (one positive finite value per channel), each tap is first normalised as
     /// [`crate::events::scaled`] does (`(s · (1 / scale)).clamp(0, 1)`): the result equals
-    /// warping the normalised image, bit for bit, without making it. Clipping is not linear,
-    /// so it cannot move after the interpolation without changing the values.
+    /// warping the normalised image, bit for bit, without making it (for finite values: a NaN
+    /// tap of zero weight, which the per-pixel sample skips, makes the value NaN here).
+    /// Clipping is not linear, so it cannot move after the interpolation without changing
+    /// the values.
     ///
     /// Parallel over pieces of frame pixels; every output value is written once (the output
     /// is not zeroed first).
     pub fn apply(&self, src: &[f32], channels: usize, scales: Option<&[f32]>) -> Result<Vec<f32>> {
+        Ok(self.apply_inner(src, channels, scales, None)?.0)
+    }
+
+    /// [`Self::apply`] and, in the same pass, the fusion of its result with the frame
+    /// (`dst_w × dst_h` 8-bit pixels) at weight `beta`: returns the warped image and
+    /// [`crate::fusion::fuse_e3ct`]`(frame, warped, channels, beta)`, bit for bit, without
+    /// reading the warped image back from memory (each piece is blended while it is in
+    /// cache). β must be chosen before the warp (it depends on the frame only, see
+    /// [`crate::fusion::choose_beta`]).
+    pub fn apply_fused(
+        &self,
+        src: &[f32],
+        channels: usize,
+        scales: Option<&[f32]>,
+        frame: &[u8],
+        beta: f64,
+    ) -> Result<(Vec<f32>, Vec<u8>)> {
+        if frame.len() != self.dst_w * self.dst_h {
+            return Err(Error::invalid(
+                "frame",
+                format!(
+                    "{}×{} pixels, the warp's frame size",
+                    self.dst_w, self.dst_h
+                ),
+                format!("{} pixels", frame.len()),
+            ));
+        }
+        let weights = blend_weights(beta)?;
+        let (warped, fused) = self.apply_inner(src, channels, scales, Some((frame, weights)))?;
+        Ok((warped, fused.unwrap_or_default()))
+    }
+
+    /// [`Self::apply`], and with `fuse = (frame, (1 − β, 255 β))` the blend as well.
+    fn apply_inner(
+        &self,
+        src: &[f32],
+        channels: usize,
+        scales: Option<&[f32]>,
+        fuse: Option<(&[u8], (f32, f32))>,
+    ) -> Result<(Vec<f32>, Option<Vec<u8>>)> {
         if channels == 0 || src.len() != self.src_w * self.src_h * channels {
             return Err(Error::invalid(
                 "src",
@@ -318,50 +368,80 @@ impl WarpMap {
         let n = self.dst_w * self.dst_h * channels;
         let mut dst: Vec<f32> = Vec::with_capacity(n);
         let out = &mut dst.spare_capacity_mut()[..n];
+        let mut fused = fuse.map(|_| vec![0u8; self.dst_w * self.dst_h]);
+        let blend = fuse
+            .zip(fused.as_deref_mut())
+            .map(|((frame, ab), out)| Blend {
+                frame,
+                out,
+                weights: ab,
+            });
         // Constant channel counts get their own unrolled loops (the E3CT has 3 or 4 channels);
         // `C = 0` is the loop for any count.
         match inv.as_deref() {
-            None => self.gather_any(src, channels, out, |s, _| s),
-            Some(k) => self.gather_any(src, channels, out, |s, i| (s * k[i]).clamp(0.0, 1.0)),
+            None => self.gather_any::<false>(src, channels, out, blend, |s, _| s),
+            Some(k) => {
+                // Normalised taps lie in [0, 1] (for finite input), so a zero weight adds +0 and
+                // need not be skipped: the dense loop gives the same sums.
+                self.gather_any::<true>(src, channels, out, blend, |s, i| {
+                    (s * k[i]).clamp(0.0, 1.0)
+                })
+            }
         }
         // SAFETY: `gather` wrote all `n` values of the spare capacity: each piece writes every
         // value of every one of its pixels (a value, or 0 where nothing is sampled).
         unsafe { dst.set_len(n) };
-        Ok(dst)
+        Ok((dst, fused))
     }
 
     /// [`Self::gather`] with the channel count a constant where it is 1 to 4.
-    fn gather_any(
+    fn gather_any<const DENSE: bool>(
         &self,
         src: &[f32],
         c: usize,
         out: &mut [MaybeUninit<f32>],
+        blend: Option<Blend<'_>>,
         value: impl Fn(f32, usize) -> f32 + Sync,
     ) {
         match c {
-            1 => self.gather::<1>(src, c, out, value),
-            2 => self.gather::<2>(src, c, out, value),
-            3 => self.gather::<3>(src, c, out, value),
-            4 => self.gather::<4>(src, c, out, value),
-            _ => self.gather::<0>(src, c, out, value),
+            1 => self.gather::<1, DENSE>(src, c, out, blend, value),
+            2 => self.gather::<2, DENSE>(src, c, out, blend, value),
+            3 => self.gather::<3, DENSE>(src, c, out, blend, value),
+            4 => self.gather::<4, DENSE>(src, c, out, blend, value),
+            _ => self.gather::<0, DENSE>(src, c, out, blend, value),
         }
     }
 
     /// The gather: every frame pixel's `c` values (`c = C` when `C > 0`), each tap's value
-    /// entering as `value(s, k)`.
-    fn gather<const C: usize>(
+    /// entering as `value(s, k)`. Taps of zero weight are skipped, as the per-pixel sample
+    /// skips them, unless `DENSE` (for values where adding `0 · value` changes nothing: the
+    /// normalised taps, in [0, 1]; the loop then has no branch per tap).
+    fn gather<const C: usize, const DENSE: bool>(
         &self,
         src: &[f32],
         c: usize,
         out: &mut [MaybeUninit<f32>],
+        blend: Option<Blend<'_>>,
         value: impl Fn(f32, usize) -> f32 + Sync,
     ) {
         let c = if C > 0 { C } else { c };
         let (w, h) = (self.src_w, self.src_h);
+        // Per piece, its slice of the blend's output (or none).
+        let (frame, weights) = match &blend {
+            Some(b) => (b.frame, b.weights),
+            None => (&[][..], (0.0, 0.0)),
+        };
+        let mut fused: Vec<Option<&mut [u8]>> = match blend {
+            Some(b) => b.out.chunks_mut(APPLY_PIECE).map(Some).collect(),
+            None => (0..self.entries.len().div_ceil(APPLY_PIECE))
+                .map(|_| None)
+                .collect(),
+        };
         out.par_chunks_mut(APPLY_PIECE * c)
             .zip(self.entries.par_chunks(APPLY_PIECE))
+            .zip(fused.par_iter_mut())
             .enumerate()
-            .for_each(|(piece, (out, entries))| {
+            .for_each(|(piece, ((out, entries), fused))| {
                 for (o, e) in out.chunks_exact_mut(c).zip(entries) {
                     if e.base == NO_SOURCE {
                         for o in o.iter_mut() {
@@ -384,7 +464,7 @@ impl WarpMap {
                         // weights skipped as it skips them.
                         let mut acc = 0.0f32;
                         for (tap, &weight) in taps.iter().zip(&weights) {
-                            if weight != 0.0 {
+                            if DENSE || weight != 0.0 {
                                 acc += weight * value(tap[k], k);
                             }
                         }
@@ -421,6 +501,18 @@ impl WarpMap {
                         }
                         o.write(acc);
                     }
+                }
+                // The blend of the piece, read back while it is in cache.
+                if let Some(fused) = fused {
+                    // SAFETY: every value of `out` was written above (the interior loop writes
+                    // every pixel of the piece, the edge loop rewrites some), and
+                    // `MaybeUninit<f32>` has the layout of `f32`.
+                    let warped: &[f32] = unsafe {
+                        std::slice::from_raw_parts(out.as_ptr().cast::<f32>(), out.len())
+                    };
+                    let first = piece * APPLY_PIECE;
+                    let (a, b) = weights;
+                    blend_piece::<C>(fused, &frame[first..first + entries.len()], warped, c, a, b);
                 }
             });
     }
