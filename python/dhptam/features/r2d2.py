@@ -33,13 +33,15 @@ pixel's descriptor in one pass (equal to the torch path to float rounding; teste
 
 ``precision="int8"`` (CPU only) runs the trunk quantised by ``torch.ao.quantization``: static
 post-training quantisation for torch's oneDNN engine, weights per output channel (symmetric
-int8), activations per tensor (unsigned 8 bit, ranges from a histogram observer), each
-convolution fused with its ReLU, the 2× max pooling done on the int8 map. The activation ranges
-come from ``calibration_images`` when given, else from the first batch the extractor sees (so
-the first call is slower, and results depend on that batch; pass the same calibration images
-to make two extractors agree). It halves the bytes of every activation again against bfloat16:
-the trunk at full resolution is bounded by memory traffic, not arithmetic, on a CPU
-(docs/BENCHMARKS.md). Quality against float32 is in ``tests/test_features_quality.py``.
+int8), activations per tensor (unsigned 8 bit, ranges = minimum and maximum seen), each
+convolution fused with its ReLU, the 2× max pooling done on the int8 map, the output
+dequantised to float32 for the heads and descriptors. The activation ranges come from
+``calibration_images`` when given, else from the first batch the extractor sees, shrunk to at
+most 640×480 pixels per image (so the first call is slower and the results depend on that
+batch; pass the same calibration images to make two extractors agree). Activations take a
+quarter of float32's bytes and half of bfloat16's, and the full-resolution trunk is bounded by
+memory traffic on a CPU (docs/BENCHMARKS.md). Quality against float32: ``tests/test_features.py``
+and ``tests/test_features_quality.py``.
 """
 
 from __future__ import annotations
@@ -444,7 +446,7 @@ class R2D2(TorchExtractor):
         and no calibration images yet, ``image`` (the first one seen) calibrates the trunk."""
         if self.precision == "int8":
             if self._int8 is None:
-                self._int8 = quantize_trunk(self.net, [image])
+                self._int8 = quantize_trunk(self.net, [_calibration_input(image)])
             return self._int8(image)
         with self.autocast():
             return self.net.trunk(image, upsample=False)
@@ -542,6 +544,23 @@ class R2D2(TorchExtractor):
             f"R2D2({self.net.arch.name}, weights={str(self.weights)!r}, max_keypoints={self.max_keypoints}, "
             f"scales={self.scales}, precision={self.precision!r}, device={self.device})"
         )
+
+
+#: Largest image area (pixels) the int8 trunk is calibrated on when it calibrates itself on the
+#: first batch: larger inputs are shrunk to it (the calibration runs the float32 network with
+#: observers, ~30× the int8 trunk's time at 1024×1024).
+_CALIBRATION_AREA = 640 * 480
+
+
+def _calibration_input(image: torch.Tensor) -> torch.Tensor:
+    """``image`` (B, 3, H, W), shrunk (antialiased, aspect kept) to at most ``_CALIBRATION_AREA``
+    pixels per image."""
+    height, width = image.shape[-2:]
+    factor = (_CALIBRATION_AREA / (height * width)) ** 0.5
+    if factor >= 1.0:
+        return image
+    size = (max(16, round(height * factor)), max(16, round(width * factor)))
+    return F.interpolate(image, size=size, mode="bilinear", align_corners=False, antialias=True)
 
 
 def _upsample_taps(i: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
