@@ -314,7 +314,7 @@ def quantize_trunk(net: R2D2Net, calibration: Iterable[torch.Tensor]) -> nn.Modu
     Static post-training quantisation with ``torch.ao.quantization`` for torch's oneDNN engine
     (``x86`` where oneDNN is missing): batch norms folded first, each convolution fused with the
     ReLU after it, weights quantised per output channel (symmetric int8), activations per
-    tensor (unsigned 8 bit) with ranges from a histogram observer over ``calibration``:
+    tensor (unsigned 8 bit) with ranges from ``calibration``:
     normalised RGB batches (B, 3, H, W) float32 on the CPU, as the extractor feeds the trunk.
     Activation ranges are the minimum and maximum seen (a histogram observer gave the same
     matching quality in ``tests/test_features_quality.py`` and costs seconds per image).
