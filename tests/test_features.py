@@ -341,23 +341,27 @@ def test_int8_trunk_agrees_with_float32(checkpoint: str) -> None:
     assert np.percentile(same, 10) > 0.93
 
 
-def test_int8_calibrates_on_the_first_batch_once() -> None:
-    image = _camera()
+def test_int8_calibrates_on_the_first_image_once() -> None:
+    image, other = _camera(), _grey("chelsea")
     path = shared_path("models", "r2d2", "faster2d2_WASF_N16.pt")
     common = dict(device="cpu", max_keypoints=200, precision="int8", scales=(1.0,))
     lazy = features.load("r2d2", path, **common)  # type: ignore[arg-type]
     explicit = features.load("r2d2", path, calibration_images=[image], **common)  # type: ignore[arg-type]
-    first = lazy.extract_one(image)
-    # Calibrating on the first image seen is the same as passing it as the calibration set ...
-    again = explicit.extract_one(image)
-    # ... and later calls keep that calibration (another image in between changes nothing).
-    lazy.extract_one(_grey("chelsea"))
+    # Calibrating on the left image of the first pair is the same as passing it as the
+    # calibration set ...
+    first = lazy.extract(image, other)
+    again = explicit.extract(image, other)
+    # ... and later calls keep that calibration.
+    lazy.extract_one(other)
     later = lazy.extract_one(image)
-    assert len(first) > 50
-    for a, b in ((first, again), (first, later)):
+    assert len(first[0]) > 50 and len(first[1]) > 50
+    for a, b in ((first[0], again[0]), (first[1], again[1]), (first[0], later)):
         np.testing.assert_array_equal(a.keypoints, b.keypoints)
         np.testing.assert_array_equal(a.scores, b.scores)
         np.testing.assert_array_equal(a.descriptors, b.descriptors)
+    # Calibrated on the other image instead, the results differ (the calibration is used).
+    moved = features.load("r2d2", path, calibration_images=[other], **common).extract_one(image)  # type: ignore[arg-type]
+    assert not np.array_equal(moved.scores, later.scores)
 
 
 def test_int8_refuses_bad_settings() -> None:

@@ -36,12 +36,12 @@ post-training quantisation for torch's oneDNN engine, weights per output channel
 int8), activations per tensor (unsigned 8 bit, ranges = minimum and maximum seen), each
 convolution fused with its ReLU, the 2× max pooling done on the int8 map, the output
 dequantised to float32 for the heads and descriptors. The activation ranges come from
-``calibration_images`` when given, else from the first batch the extractor sees, shrunk to at
-most 640×480 pixels per image (so the first call is slower and the results depend on that
-batch; pass the same calibration images to make two extractors agree). Activations take a
-quarter of float32's bytes and half of bfloat16's, and the full-resolution trunk is bounded by
-memory traffic on a CPU (docs/BENCHMARKS.md). Quality against float32: ``tests/test_features.py``
-and ``tests/test_features_quality.py``.
+``calibration_images`` when given, else from the first image the extractor sees (the left one
+of the first pair), shrunk to at most 640×480 pixels (so the first call is slower and the
+results depend on that image; pass the same calibration images to make two extractors
+agree). Activations take a quarter of float32's bytes and half of bfloat16's, and the
+full-resolution trunk is bounded by memory traffic on a CPU (docs/BENCHMARKS.md). Quality
+against float32: ``tests/test_features.py`` and ``tests/test_features_quality.py``.
 """
 
 from __future__ import annotations
@@ -443,10 +443,11 @@ class R2D2(TorchExtractor):
 
     def _trunk(self, image: torch.Tensor) -> torch.Tensor:
         """The trunk's map before the final upsampling, in the extractor's precision; with int8
-        and no calibration images yet, ``image`` (the first one seen) calibrates the trunk."""
+        and no calibration images yet, the first image of ``image`` (the first batch seen)
+        calibrates the trunk."""
         if self.precision == "int8":
             if self._int8 is None:
-                self._int8 = quantize_trunk(self.net, [_calibration_input(image)])
+                self._int8 = quantize_trunk(self.net, [_calibration_input(image[:1])])
             return self._int8(image)
         with self.autocast():
             return self.net.trunk(image, upsample=False)
@@ -547,7 +548,7 @@ class R2D2(TorchExtractor):
 
 
 #: Largest image area (pixels) the int8 trunk is calibrated on when it calibrates itself on the
-#: first batch: larger inputs are shrunk to it (the calibration runs the float32 network with
+#: first image: larger inputs are shrunk to it (the calibration runs the float32 network with
 #: observers, ~30× the int8 trunk's time at 1024×1024).
 _CALIBRATION_AREA = 640 * 480
 
