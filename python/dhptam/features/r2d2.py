@@ -549,7 +549,7 @@ class R2D2(TorchExtractor):
 
 #: Largest image area (pixels) the int8 trunk is calibrated on when it calibrates itself on the
 #: first image: larger inputs are shrunk to it (the calibration runs the float32 network with
-#: observers, ~30× the int8 trunk's time at 1024×1024).
+#: observers: ~1 min for a full 1024×1024 pair on the loaded 2-core development box).
 _CALIBRATION_AREA = 640 * 480
 
 
