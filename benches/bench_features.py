@@ -13,6 +13,10 @@ more or fewer peaks, nothing else). R2D2 uses the official checkpoints from
 ``../shared/models/r2d2`` (or ``--r2d2-dir``).
 
     python benches/bench_features.py [--sizes 640x480,1280x1024] [--repeats 3] [--threads 2]
+        [--max-keypoints 1000] [--only TEXT]
+
+The int8 row calibrates its trunk on the first pair it sees (the extractor's default), so its
+first call (also printed, for every row) includes the calibration.
 
 Prints a markdown table; the figures in docs/BENCHMARKS.md come from it.
 """
@@ -45,19 +49,21 @@ def stereo_pair(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     return left, np.ascontiguousarray(np.roll(left, -8, axis=1))
 
 
-def configurations(r2d2_dir: Path, threads: int) -> list[tuple[str, str, Callable[[], features.Extractor]]]:
+def configurations(
+    r2d2_dir: Path, threads: int, max_keypoints: int
+) -> list[tuple[str, str, Callable[[], features.Extractor]]]:
     """(row label, paper family, constructor)."""
     full = r2d2_dir / "r2d2_WASF_N16.pt"
     fast = r2d2_dir / "faster2d2_WASF_N16.pt"
-    common = {"device": "cpu", "max_keypoints": 1000, "threads": threads}
+    common = {"device": "cpu", "max_keypoints": max_keypoints, "threads": threads}
 
     def superpoint(precision: str) -> features.Extractor:
         torch.manual_seed(0)
         return SuperPoint(None, net=SuperPointNet(), precision=precision, **common)  # type: ignore[arg-type]
 
     return [
-        ("orb", "", lambda: features.load("orb", max_keypoints=1000, threads=threads)),
-        ("sift", "", lambda: features.load("sift", max_keypoints=1000, threads=threads)),
+        ("orb", "", lambda: features.load("orb", max_keypoints=max_keypoints, threads=threads)),
+        ("sift", "", lambda: features.load("sift", max_keypoints=max_keypoints, threads=threads)),
         ("superpoint (random weights)", "superpoint", lambda: superpoint("float32")),
         ("superpoint, bf16 trunk", "superpoint", lambda: superpoint("bfloat16")),
         (
@@ -72,6 +78,16 @@ def configurations(r2d2_dir: Path, threads: int) -> list[tuple[str, str, Callabl
             "r2d2",
             lambda: features.load("r2d2", fast, scales=(1.0,), precision="bfloat16", **common),
         ),
+        (
+            "r2d2 faster2d2, scale 1, int8 trunk",
+            "r2d2",
+            lambda: features.load("r2d2", fast, scales=(1.0,), precision="int8", **common),
+        ),
+        (
+            "r2d2 r2d2_WASF_N16, scales 1/0.75/0.5, int8 trunk",
+            "r2d2",
+            lambda: features.load("r2d2", full, precision="int8", **common),
+        ),
     ]
 
 
@@ -83,6 +99,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3, help="timed runs per row (after one warm-up)")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--only", default="", help="run only rows whose label contains this text")
+    parser.add_argument("--max-keypoints", type=int, default=1000, help="keypoints kept per image")
     parser.add_argument("--r2d2-dir", type=Path, default=REPO.parent / "shared" / "models" / "r2d2")
     args = parser.parse_args()
 
@@ -94,21 +111,27 @@ def main() -> None:
         pass
     print(f"# {cpu}, {os.cpu_count()} cores, torch {torch.__version__}, OpenCV {cv2.__version__}, ")
     print(f"# threads {args.threads}, load average before: {os.getloadavg()[0]:.2f}\n")
-    print("| image | extractor | keypoints (L/R) | ms per stereo pair (median, min) | paper / ours |")
-    print("|---|---|---|---|---|")
+    print(
+        "| image | extractor | keypoints (L/R) | ms per stereo pair (median, min) | CPU ms (median) "
+        "| first call ms | paper / ours |"
+    )
+    print("|---|---|---|---|---|---|---|")
     for size in args.sizes.split(","):
         width, height = (int(v) for v in size.lower().split("x"))
         left, right = stereo_pair(width, height)
-        for label, family, make in configurations(args.r2d2_dir, args.threads):
+        for label, family, make in configurations(args.r2d2_dir, args.threads, args.max_keypoints):
             if args.only and args.only not in label:
                 continue
             extractor = make()
-            fl, fr = extractor.extract(left, right)  # warm-up (allocations, oneDNN kernel choice)
-            times = []
+            start = time.perf_counter()
+            fl, fr = extractor.extract(left, right)  # warm-up (allocations, kernel choice, int8 calibration)
+            first = time.perf_counter() - start
+            times, cpu = [], []
             for _ in range(args.repeats):
-                start = time.perf_counter()
+                start, start_cpu = time.perf_counter(), time.process_time()
                 fl, fr = extractor.extract(left, right)
                 times.append(time.perf_counter() - start)
+                cpu.append(time.process_time() - start_cpu)
             median = statistics.median(times)
             ratio = ""
             if family:
@@ -116,7 +139,8 @@ def main() -> None:
                 ratio = f"{low / median:.1f}–{high / median:.1f}×"
             print(
                 f"| {width}×{height} | {label} | {len(fl)}/{len(fr)} | "
-                f"{1e3 * median:.0f} ({1e3 * min(times):.0f}) | {ratio} |",
+                f"{1e3 * median:.0f} ({1e3 * min(times):.0f}) | {1e3 * statistics.median(cpu):.0f} "
+                f"| {1e3 * first:.0f} | {ratio} |",
                 flush=True,
             )
     print(f"\n# load average after: {os.getloadavg()[0]:.2f}")

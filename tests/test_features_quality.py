@@ -111,12 +111,18 @@ def _measure(extractor: features.Extractor) -> dict[str, float]:
 #   faster2d2_WASF_N16 repeatability 0.780  precision 0.903  correct 532
 #   faster2d2, one scale, bfloat16 trunk (the fast setting of docs/BENCHMARKS.md)
 #                      repeatability 0.766  precision 0.909  correct 438
+#   faster2d2, one scale, int8 trunk (calibrated on chelsea, rocket, coffee at 320×240)
+#                      repeatability 0.776  precision 0.905  correct 444
+#   r2d2_WASF_N16, int8 trunk (same calibration)
+#                      repeatability 0.746  precision 0.927  correct 557
 #   orb                repeatability 0.802  precision 0.930  correct 888
 #   sift               repeatability 0.726  precision 0.969  correct 819
 THRESHOLDS = {
     "r2d2_WASF_N16": (0.62, 0.80, 430),
     "faster2d2_WASF_N16": (0.65, 0.80, 400),
     "faster2d2-fast": (0.64, 0.80, 330),
+    "faster2d2-int8": (0.64, 0.80, 330),
+    "r2d2_WASF_N16-int8": (0.62, 0.80, 430),
     "orb": (0.67, 0.82, 670),
     "sift": (0.60, 0.86, 610),
 }
@@ -142,6 +148,37 @@ def test_r2d2_fast_setting_keeps_its_quality() -> None:
         "r2d2", path, device="cpu", max_keypoints=500, scales=(1.0,), precision="bfloat16"
     )
     _check("faster2d2-fast", _measure(extractor))
+
+
+def _calibration() -> list[npt.NDArray[np.uint8]]:
+    """Photographs for the int8 calibration: coffee is among the test photos, the others not."""
+    out = []
+    for name in ("chelsea", "rocket", "coffee"):
+        image = cv2.cvtColor(getattr(data, name)(), cv2.COLOR_RGB2GRAY)
+        out.append(cv2.resize(image, SIZE, interpolation=cv2.INTER_AREA))
+    return out
+
+
+def test_r2d2_int8_trunk_keeps_its_quality() -> None:
+    fast = features.load(
+        "r2d2",
+        shared_path("models", "r2d2", "faster2d2_WASF_N16.pt"),
+        device="cpu",
+        max_keypoints=500,
+        scales=(1.0,),
+        precision="int8",
+        calibration_images=_calibration(),
+    )
+    _check("faster2d2-int8", _measure(fast))
+    full = features.load(
+        "r2d2",
+        shared_path("models", "r2d2", "r2d2_WASF_N16.pt"),
+        device="cpu",
+        max_keypoints=500,
+        precision="int8",
+        calibration_images=_calibration(),
+    )
+    _check("r2d2_WASF_N16-int8", _measure(full))
 
 
 @pytest.mark.parametrize("name", ["orb", "sift"])

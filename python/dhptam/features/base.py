@@ -198,8 +198,12 @@ class TorchExtractor(Extractor):
     ``threads`` (> 0) sets ``torch.set_num_threads``, a process-wide torch setting; None or 0
     leaves torch's default (one thread per core). ``precision`` is ``"float32"`` (default),
     ``"bfloat16"`` or, on CUDA, ``"float16"`` for the network's forward pass (see
-    :meth:`autocast`).
+    :meth:`autocast`); a subclass may accept more in :attr:`extra_precisions` (R2D2: ``"int8"``),
+    for which :meth:`autocast` does nothing and the subclass runs its own network.
     """
+
+    #: Precisions this extractor accepts besides float32, bfloat16 and float16.
+    extra_precisions: tuple[str, ...] = ()
 
     def __init__(
         self,
@@ -211,9 +215,10 @@ class TorchExtractor(Extractor):
         super().__init__(max_keypoints)
         self._torch = import_torch()
         self.device = resolve_device(device)
-        if precision not in _PRECISIONS:
+        allowed = _PRECISIONS + self.extra_precisions
+        if precision not in allowed:
             raise InputError(
-                f"precision: expected one of {', '.join(_PRECISIONS)}, got {precision!r}", field="precision"
+                f"precision: expected one of {', '.join(allowed)}, got {precision!r}", field="precision"
             )
         if precision == "float16" and self.device.type != "cuda":
             raise InputError(
@@ -234,7 +239,7 @@ class TorchExtractor(Extractor):
         Sapphire Rapids core) at the cost of ~3 significant digits in the network's
         activations; everything after the network (NMS, sampling, normalisation) stays float32.
         """
-        if self.precision == "float32":
+        if self.precision not in ("bfloat16", "float16"):
             return contextlib.nullcontext()
         dtype = getattr(self._torch, self.precision)
         return self._torch.autocast(device_type=self.device.type, dtype=dtype)

@@ -30,12 +30,28 @@ batch norms into the convolutions (exact up to float rounding) and runs under
 128-channel map: descriptors are interpolated at the keypoints only, and on the CPU the heads
 run in the Rust core (``_core._r2d2_heads``), which interpolates, squares and projects each
 pixel's descriptor in one pass (equal to the torch path to float rounding; tested).
+
+``precision="int8"`` (CPU only) runs the trunk quantised by ``torch.ao.quantization``: static
+post-training quantisation for torch's oneDNN engine, weights per output channel (symmetric
+int8), activations per tensor (unsigned 8 bit, ranges = minimum and maximum seen), each
+convolution fused with its ReLU, the 2× max pooling done on the int8 map, the output
+dequantised to float32 for the heads and descriptors. The activation ranges come from
+``calibration_images`` when given, else from the first image the extractor sees (the left one
+of the first pair), shrunk to at most 640×480 pixels (so the first call is slower and the
+results depend on that image; pass the same calibration images to make two extractors
+agree). Activations take a quarter of float32's bytes and half of bfloat16's, and the
+full-resolution trunk is bounded by memory traffic on a CPU (docs/BENCHMARKS.md). Quality
+against float32: ``tests/test_features.py`` and ``tests/test_features_quality.py``.
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
+import copy
 import re
+import warnings
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -48,10 +64,10 @@ from torch import nn
 
 from .. import _core
 from ..errors import FileError, InputError
-from .base import Features, TorchExtractor, refine_subpixel, to_features, window_max
+from .base import Features, TorchExtractor, check_image, refine_subpixel, to_features, window_max
 from .weights import safe_torch_load
 
-__all__ = ["R2D2", "R2D2Net", "architecture_from_string", "load_checkpoint"]
+__all__ = ["R2D2", "R2D2Net", "architecture_from_string", "load_checkpoint", "quantize_trunk"]
 
 # ImageNet statistics the published models were trained with (RGB); a grey image is fed as
 # three equal channels.
@@ -262,11 +278,99 @@ def load_checkpoint(path: str | Path) -> R2D2Net:
     return net.eval()
 
 
+@contextlib.contextmanager
+def _quiet_quantization() -> Iterator[None]:
+    """Silences torch's deprecation notices for ``torch.ao.quantization`` and its quantised
+    tensors (the API still works in the supported torch versions; these notices are not about
+    the caller's code)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\..*")
+        warnings.filterwarnings("ignore", message=r".*torch\.ao\.quantization.*")
+        warnings.filterwarnings("ignore", message=r".*(quantize_per|quant_min|reduce_range).*")
+        yield
+
+
+class _Int8Trunk(nn.Module):
+    """Float32 NHWC input → float32 output of the int8 trunk (quantise, int8 layers, dequantise)."""
+
+    def __init__(self, body: nn.Module) -> None:
+        super().__init__()
+        from torch.ao.quantization import QuantStub
+
+        self.quant = QuantStub()
+        self.body = body
+        self.engine = ""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.engine and torch.backends.quantized.engine != self.engine:
+            torch.backends.quantized.engine = self.engine
+        with _quiet_quantization():
+            return self.body(self.quant(x)).dequantize()
+
+
+def quantize_trunk(net: R2D2Net, calibration: Iterable[torch.Tensor]) -> nn.Module:
+    """The trunk of ``net`` (before the final upsampling), quantised to int8 for the CPU.
+
+    Static post-training quantisation with ``torch.ao.quantization`` for torch's oneDNN engine
+    (``x86`` where oneDNN is missing): batch norms folded first, each convolution fused with the
+    ReLU after it, weights quantised per output channel (symmetric int8), activations per
+    tensor (unsigned 8 bit) with ranges from ``calibration``:
+    normalised RGB batches (B, 3, H, W) float32 on the CPU, as the extractor feeds the trunk.
+    Activation ranges are the minimum and maximum seen (a histogram observer gave the same
+    matching quality in ``tests/test_features_quality.py`` and costs seconds per image).
+    Returns a module from that input to the float32 (B, D, h, w) map; it sets
+    ``torch.backends.quantized.engine`` (process-wide) to its engine when it runs.
+    """
+    try:
+        from torch.ao import quantization as tq
+    except ImportError as e:  # pragma: no cover - torch builds without the quantisation API
+        raise InputError(
+            f"precision: int8 needs torch.ao.quantization, which torch {torch.__version__} lacks",
+            field="precision",
+        ) from e
+    supported = torch.backends.quantized.supported_engines
+    engine = next((e for e in ("onednn", "x86") if e in supported), None)
+    if engine is None:
+        raise InputError(
+            f"precision: int8 needs torch's onednn or x86 quantised engine; this torch has {supported}",
+            field="precision",
+        )
+    fused = copy.deepcopy(net)
+    fused.fuse()
+    assert fused._fused is not None
+    layers = [op for op in fused._fused if not isinstance(op, nn.Upsample)]
+    body = nn.Sequential(*layers).eval()
+    pairs = [
+        [str(i), str(i + 1)]
+        for i in range(len(layers) - 1)
+        if isinstance(layers[i], nn.Conv2d) and isinstance(layers[i + 1], nn.ReLU)
+    ]
+    torch.backends.quantized.engine = engine
+    with _quiet_quantization():
+        model = _Int8Trunk(tq.fuse_modules(body, pairs)).eval()
+        model.qconfig = tq.QConfig(  # type: ignore[assignment]
+            activation=tq.MinMaxObserver.with_args(dtype=torch.quint8, reduce_range=False),
+            weight=tq.default_per_channel_weight_observer,
+        )
+        tq.prepare(model, inplace=True)
+        seen = 0
+        with torch.inference_mode():
+            for batch in calibration:
+                model(batch.float().contiguous(memory_format=torch.channels_last))
+                seen += 1
+        if seen == 0:
+            raise InputError("calibration_images: expected at least one image", field="calibration_images")
+        tq.convert(model, inplace=True)
+    model.engine = engine
+    return model
+
+
 class R2D2(TorchExtractor):
     """R2D2 keypoints with 128-D unit-norm float32 descriptors (see the module docstring)."""
 
     name = "r2d2"
     descriptor_width = 128
+    extra_precisions = ("int8",)
 
     def __init__(
         self,
@@ -281,8 +385,19 @@ class R2D2(TorchExtractor):
         reliability_threshold: float = 0.7,
         repeatability_threshold: float = 0.7,
         merge_radius_px: int = 2,
+        calibration_images: Sequence[npt.ArrayLike] | None = None,
     ) -> None:
         super().__init__(max_keypoints, device, threads, precision)
+        if precision == "int8" and self.device.type != "cpu":
+            raise InputError(
+                f"precision: int8 runs on the CPU only (device is {self.device}); use float16 on CUDA",
+                field="precision",
+            )
+        if calibration_images is not None and precision != "int8":
+            raise InputError(
+                f"calibration_images: only used with precision='int8', got precision={precision!r}",
+                field="calibration_images",
+            )
         if not scales or any(not (0.0 < s <= 1.0) for s in scales):
             raise InputError(f"scales: expected factors in (0, 1], got {scales}", field="scales")
         if merge_radius_px < 0:
@@ -303,6 +418,11 @@ class R2D2(TorchExtractor):
         self._head_weights = (weights.cpu().numpy(), bias.cpu().numpy())
         self._mean = torch.tensor(_MEAN, device=self.device).view(1, 3, 1, 1)
         self._std = torch.tensor(_STD, device=self.device).view(1, 3, 1, 1)
+        self._int8: nn.Module | None = None
+        if calibration_images is not None:
+            images = [check_image(im, f"calibration_images[{i}]") for i, im in enumerate(calibration_images)]
+            with torch.inference_mode():
+                self._int8 = quantize_trunk(self.net, (self._normalise([im]) for im in images))
 
     def scales_for(self, height: int, width: int) -> list[float]:
         """The pyramid scales used for an image of this size (longer side ≥ ``min_size``)."""
@@ -311,11 +431,26 @@ class R2D2(TorchExtractor):
 
     def _run_batch(self, images: list[npt.NDArray[np.uint8]]) -> list[Features]:
         with torch.inference_mode():
-            grey = self._to_tensor(images)
-            rgb = ((grey.expand(-1, 3, -1, -1) - self._mean) / self._std).contiguous(
-                memory_format=torch.channels_last
-            )
-            return self._detect(rgb)
+            return self._detect(self._normalise(images))
+
+    def _normalise(self, images: list[npt.NDArray[np.uint8]]) -> torch.Tensor:
+        """Grey uint8 images → the network's input: (B, 3, H, W) float32 ImageNet-normalised
+        RGB (three equal channels), channels-last, on the device."""
+        grey = self._to_tensor(images)
+        return ((grey.expand(-1, 3, -1, -1) - self._mean) / self._std).contiguous(
+            memory_format=torch.channels_last
+        )
+
+    def _trunk(self, image: torch.Tensor) -> torch.Tensor:
+        """The trunk's map before the final upsampling, in the extractor's precision; with int8
+        and no calibration images yet, the first image of ``image`` (the first batch seen)
+        calibrates the trunk."""
+        if self.precision == "int8":
+            if self._int8 is None:
+                self._int8 = quantize_trunk(self.net, [_calibration_input(image[:1])])
+            return self._int8(image)
+        with self.autocast():
+            return self.net.trunk(image, upsample=False)
 
     def _detect(self, rgb: torch.Tensor) -> list[Features]:
         batch, _, height, width = rgb.shape
@@ -335,8 +470,7 @@ class R2D2(TorchExtractor):
             # thresholded and compared with their neighbours, run in float32. The final
             # upsampling of the fast variant is never materialised for the descriptors, which
             # are interpolated at the keypoints only, nor on the CPU for the heads.
-            with self.autocast():
-                low = self.net.trunk(image, upsample=False)
+            low = self._trunk(image)
             rel, rep = self._heads(low, m)
             maxima = rep == window_max(rep, 1)
             maxima &= rep >= self.repeatability_threshold
@@ -409,8 +543,25 @@ class R2D2(TorchExtractor):
     def __repr__(self) -> str:
         return (
             f"R2D2({self.net.arch.name}, weights={str(self.weights)!r}, max_keypoints={self.max_keypoints}, "
-            f"scales={self.scales}, device={self.device})"
+            f"scales={self.scales}, precision={self.precision!r}, device={self.device})"
         )
+
+
+#: Largest image area (pixels) the int8 trunk is calibrated on when it calibrates itself on the
+#: first image: larger inputs are shrunk to it (the calibration runs the float32 network with
+#: observers: ~1 min for a full 1024×1024 pair on the loaded 2-core development box).
+_CALIBRATION_AREA = 640 * 480
+
+
+def _calibration_input(image: torch.Tensor) -> torch.Tensor:
+    """``image`` (B, 3, H, W), shrunk (antialiased, aspect kept) to at most ``_CALIBRATION_AREA``
+    pixels per image."""
+    height, width = image.shape[-2:]
+    factor = (_CALIBRATION_AREA / (height * width)) ** 0.5
+    if factor >= 1.0:
+        return image
+    size = (max(16, round(height * factor)), max(16, round(width * factor)))
+    return F.interpolate(image, size=size, mode="bilinear", align_corners=False, antialias=True)
 
 
 def _upsample_taps(i: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
