@@ -135,6 +135,54 @@ fn cached_map(
     Ok(map)
 }
 
+/// The warp of eq. 5 from the binding's arguments (`depth_m` 0: infinity) and δP_align.
+fn event_frame_warp(
+    k_event: &Bound<'_, PyAny>,
+    k_frame: &Bound<'_, PyAny>,
+    frame_from_event: &PySe3,
+    depth_m: f64,
+    align_px: &Bound<'_, PyAny>,
+) -> PyResult<(EventFrameWarp, [f64; 2])> {
+    let depth = if depth_m == 0.0 {
+        Depth::Infinity
+    } else {
+        Depth::Plane { depth_m }
+    };
+    let [ax, ay] = arrays::vector::<2>(align_px, "align_px")?;
+    let warp = EventFrameWarp::new(
+        pinhole(k_event, "k_event")?,
+        pinhole(k_frame, "k_frame")?,
+        frame_from_event.inner,
+        depth,
+        Vector2::new(ax, ay),
+    )
+    .py()?;
+    Ok((warp, [ax, ay]))
+}
+
+/// The event image's values in place and its `[height, width, channels]`, with `scales`
+/// (if any) checked to be one per channel.
+fn event_image<'a>(
+    image: &'a PyReadonlyArray3<'_, f32>,
+    scales: Option<&[f32]>,
+) -> PyResult<(&'a [f32], [usize; 3])> {
+    let shape = [image.shape()[0], image.shape()[1], image.shape()[2]];
+    let c = shape[2];
+    let src = image
+        .as_slice()
+        .map_err(|_| input_error("image", "a C-contiguous float32 array", "a strided view"))?;
+    if let Some(scales) = scales {
+        if scales.len() != c {
+            return Err(input_error(
+                "scales",
+                &format!("{c} scales, one per channel of image"),
+                format!("{} scales", scales.len()),
+            ));
+        }
+    }
+    Ok((src, shape))
+}
+
 /// Warps a rectified event image (H, W, C) into the rectified frame camera; with `scales`
 /// (one per channel) each bilinear tap is normalised first (`_e3ct_apply_scales`), the same
 /// values as warping the normalised image. The inverse map of the warp is computed once per
@@ -155,33 +203,8 @@ pub fn _warp_to_frame<'py>(
     pixels: Option<&Bound<'py, PyAny>>,
     scales: Option<Vec<f32>>,
 ) -> PyResult<(Bound<'py, PyArray3<f32>>, Option<Bound<'py, PyArray2<f64>>>)> {
-    let depth = if depth_m == 0.0 {
-        Depth::Infinity
-    } else {
-        Depth::Plane { depth_m }
-    };
-    let [ax, ay] = arrays::vector::<2>(align_px, "align_px")?;
-    let warp = EventFrameWarp::new(
-        pinhole(k_event, "k_event")?,
-        pinhole(k_frame, "k_frame")?,
-        frame_from_event.inner,
-        depth,
-        Vector2::new(ax, ay),
-    )
-    .py()?;
-    let (sh, sw, c) = (image.shape()[0], image.shape()[1], image.shape()[2]);
-    let src = image
-        .as_slice()
-        .map_err(|_| input_error("image", "a C-contiguous float32 array", "a strided view"))?;
-    if let Some(scales) = &scales {
-        if scales.len() != c {
-            return Err(input_error(
-                "scales",
-                &format!("{c} scales, one per channel of image"),
-                format!("{} scales", scales.len()),
-            ));
-        }
-    }
+    let (warp, [ax, ay]) = event_frame_warp(k_event, k_frame, frame_from_event, depth_m, align_px)?;
+    let (src, [sh, sw, c]) = event_image(&image, scales.as_deref())?;
     let out = py
         .detach_guarded("fusion::_warp_to_frame", || {
             cached_map(&warp, [ax, ay], [sw, sh, width, height])?.apply(src, c, scales.as_deref())
@@ -226,37 +249,12 @@ pub fn _warp_and_fuse<'py>(
     beta: f64,
     scales: Option<Vec<f32>>,
 ) -> PyResult<(Bound<'py, PyArray3<f32>>, Bound<'py, PyArray2<u8>>)> {
-    let depth = if depth_m == 0.0 {
-        Depth::Infinity
-    } else {
-        Depth::Plane { depth_m }
-    };
-    let [ax, ay] = arrays::vector::<2>(align_px, "align_px")?;
-    let warp = EventFrameWarp::new(
-        pinhole(k_event, "k_event")?,
-        pinhole(k_frame, "k_frame")?,
-        frame_from_event.inner,
-        depth,
-        Vector2::new(ax, ay),
-    )
-    .py()?;
-    let (sh, sw, c) = (image.shape()[0], image.shape()[1], image.shape()[2]);
+    let (warp, [ax, ay]) = event_frame_warp(k_event, k_frame, frame_from_event, depth_m, align_px)?;
+    let (src, [sh, sw, c]) = event_image(&image, scales.as_deref())?;
     let (height, width) = (frame.shape()[0], frame.shape()[1]);
-    let src = image
-        .as_slice()
-        .map_err(|_| input_error("image", "a C-contiguous float32 array", "a strided view"))?;
     let pixels = frame
         .as_slice()
         .map_err(|_| input_error("frame", "a C-contiguous uint8 image", "a strided view"))?;
-    if let Some(scales) = &scales {
-        if scales.len() != c {
-            return Err(input_error(
-                "scales",
-                &format!("{c} scales, one per channel of image"),
-                format!("{} scales", scales.len()),
-            ));
-        }
-    }
     let (warped, fused) = py
         .detach_guarded("fusion::_warp_and_fuse", || {
             cached_map(&warp, [ax, ay], [sw, sh, width, height])?.apply_fused(
