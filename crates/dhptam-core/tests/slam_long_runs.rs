@@ -202,6 +202,25 @@ fn the_invariant_check_finds_dangling_ids() {
         let d = (culled.frame_pose(r).unwrap().inverse() * *b).log().norm();
         assert!(d < 1e-9, "a frame moved by {d}");
     }
+    // A point the culled keyframe created but no longer observes (its observation dropped as
+    // an outlier) takes another reference keyframe too.
+    let mut culled = map.clone();
+    let (p, creator) = culled
+        .points
+        .values()
+        .find(|p| p.observations.len() >= 2 && p.observations.contains_key(&p.first_keyframe))
+        .map(|p| (p.id, p.first_keyframe))
+        .unwrap();
+    let substitute = culled.keyframes[&creator].best_covisible(1)[0];
+    culled.remove_observation(creator, p);
+    assert!(culled.points[&p].first_keyframe == creator);
+    assert!(culled.cull_keyframe(creator, substitute));
+    assert!(
+        culled.check_invariants().is_empty(),
+        "{:?}",
+        culled.check_invariants()
+    );
+    assert_ne!(culled.points[&p].first_keyframe, creator);
 }
 
 #[test]

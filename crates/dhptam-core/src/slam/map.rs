@@ -374,7 +374,22 @@ impl Map {
             other.covisible.remove(&kf);
         }
         self.keyframes.remove(&kf);
+        self.rereference_points(kf);
         true
+    }
+
+    /// Points whose reference keyframe is `kf` (removed, or about to be) take their oldest
+    /// remaining observer instead. This covers the points `kf` created but no longer observes
+    /// (its observation dropped as an outlier or moved by a fusion), which the loop over
+    /// `kf`'s own observations does not reach.
+    pub(crate) fn rereference_points(&mut self, kf: u64) {
+        for p in self.points.values_mut() {
+            if p.first_keyframe == kf {
+                if let Some(&oldest) = p.observations.keys().next() {
+                    p.first_keyframe = oldest;
+                }
+            }
+        }
     }
 
     /// Checks the map's internal consistency and returns every violation found (empty when

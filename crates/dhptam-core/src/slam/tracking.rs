@@ -479,6 +479,7 @@ pub fn remove_keyframe(map: &mut Map, id: u64) {
         }
     }
     map.keyframes.remove(&id);
+    map.rereference_points(id);
 }
 
 /// What tracking one frame produced.
