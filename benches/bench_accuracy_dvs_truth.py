@@ -2,7 +2,7 @@
 
 For every ``--seeds`` the ``demo`` sequence (cached, as for ``dhptam demo``) is run in ``fusion``
 mode (synchronous back-end, ORB) and measured against the simulator, which renders the true
-depth of any camera at any time (``tests/sim_truth.py``):
+depth of any camera at any time (``dhptam.sim.simulator_for``):
 
 * **per point**: every keyframe's new map points (read from the map after each tracked frame;
   the map keeps points in id order, so the new ones are its tail) in that keyframe's camera
@@ -34,8 +34,6 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
 
 @contextmanager
 def _map_after_each_frame(log: list[tuple[int, bool, Any, Any, Any, Any]]) -> Iterator[None]:
@@ -63,10 +61,11 @@ class _Truth:
 
     def __init__(self, sequence: Path, seed: int, frontend: Any) -> None:
         import cv2
-        from sim_truth import simulator_like
+
+        from dhptam.sim import simulator_for
 
         self.cv2 = cv2
-        self.sim = simulator_like("demo", seed)
+        self.sim = simulator_for("demo", seed=seed)
         self.fe = frontend
         fx, fy, cx, cy, self.baseline, w, h = frontend.calibration
         self.k = (fx, fy, cx, cy, w, h)

@@ -38,34 +38,6 @@ import numpy as np
 from _accuracy import finish_table
 
 REPO = Path(__file__).resolve().parents[1]
-_NS = 1_000_000_000
-
-
-def _simulator(preset: str, seed: int, duration_s: float | None, trajectory: str | None) -> Any:
-    """The ``_core.Simulator`` that ``dhptam.sim.simulate`` drove for these arguments (same
-    rig and trajectory; only its geometry is used here: ``render_depth``)."""
-    from dhptam import _core
-    from dhptam.datasets import CAMERA_KEYS
-    from dhptam.sim.presets import PRESETS, RIGS
-    from dhptam.sim.simulate import _trajectory
-    from dhptam.sim.textures import load_photos
-
-    spec = PRESETS[preset]
-    rig = RIGS[spec.rig]
-    cameras, imu_from_cam = rig.cameras(), rig.imu_from_cam()
-    requested_ns = round((duration_s if duration_s is not None else spec.duration_s) * _NS)
-    traj_t, traj_poses = _trajectory(trajectory or spec.motion, requested_ns)
-    return _core.Simulator(
-        [cameras[k] for k in CAMERA_KEYS],
-        [imu_from_cam[k] for k in CAMERA_KEYS],
-        load_photos(),
-        traj_t,
-        traj_poses,
-        spec.profile,
-        min(requested_ns, int(traj_t[-1])),
-        seed,
-        _core.Config(),
-    )
 
 
 def _warp_depths(sequence: Path, out: Path) -> dict[int, float]:
@@ -196,6 +168,7 @@ def main() -> int:
     from dhptam.datasets import load_tumvie
     from dhptam.demo import cache_dir, demo_sequence
     from dhptam.frontend import Frontend
+    from dhptam.sim import simulator_for
 
     if args.cost > 0:
         seed = int(args.demo_seeds.split(",")[0] or 0)
@@ -212,14 +185,16 @@ def main() -> int:
     normal = cache_dir() / "sequences" / f"normal-seed{args.normal_seed}-{args.normal_duration:g}s"
     for path in sorted(p for p in root.iterdir() if p.suffix in (".csv", ".tum", ".txt")):
         if (normal / path.stem).is_dir():
-            sim = _simulator("desk", args.normal_seed, args.normal_duration, str(path))
+            sim = simulator_for(
+                "desk", seed=args.normal_seed, duration_s=args.normal_duration, trajectory=str(path)
+            )
             jobs.append((f"normal {args.normal_duration:g} s {path.stem}", normal / path.stem, sim))
     for seed in (int(s) for s in args.demo_seeds.split(",") if s):
         jobs.append(
             (
                 f"demo seed {seed}",
                 demo_sequence(seed=seed, progress=False),
-                _simulator("demo", seed, None, None),
+                simulator_for("demo", seed=seed),
             )
         )
 

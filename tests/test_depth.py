@@ -7,12 +7,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from sim_truth import simulator_like
 
 from dhptam.datasets import load_tumvie
 from dhptam.depth import point_cloud, sgbm, write_ply
 from dhptam.errors import InputError
 from dhptam.frontend import Frontend
+from dhptam.sim import simulator_for
 
 
 def _true_depth_in_rectified_left(fe: Frontend, depth_raw: np.ndarray) -> np.ndarray:
@@ -31,7 +31,7 @@ def _true_depth_in_rectified_left(fe: Frontend, depth_raw: np.ndarray) -> np.nda
 def test_sgbm_depth_matches_simulator_ground_truth(sim_tiny: Path) -> None:
     """Median relative depth error on normally lit frames of the tiny (128 px) sequence,
     measured 4.4–4.8 %; bounded at 8 %."""
-    sim = simulator_like("tiny")
+    sim = simulator_for("tiny")
     with load_tumvie(sim_tiny) as seq:
         fe = Frontend(seq, "frames", prefetch=0)
         for k in (2, 5, 18):

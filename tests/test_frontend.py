@@ -9,12 +9,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from sim_truth import simulator_like
 
 from dhptam import SE3, SO3, _core
 from dhptam.datasets import load_tumvie
 from dhptam.errors import InputError
 from dhptam.frontend import MODES, Frontend, _exposed_like, is_flood
+from dhptam.sim import simulator_for
 
 _NS = 1_000_000_000
 
@@ -136,7 +136,7 @@ def test_event_to_frame_warp_with_true_depth_lands_on_the_same_3d_point(sequence
     """Issue 5: with ground-truth depth and δP_align = 0, event pixels land within 0.5 px of
     the frame pixels of the same 3-D point (both in the rectified cameras)."""
     fe = Frontend(sequence, "fusion")
-    sim = simulator_like("tiny")
+    sim = simulator_for("tiny")
     calib = sequence.calibration
     cam_e, cam_f = calib.cameras[f"event_{side}"], calib.cameras[f"frame_{side}"]
     t_ns = int(sequence.frames.t_mid_ns[5])
@@ -208,7 +208,7 @@ def test_hdr_beta_switches_to_dvs_in_dark_and_bright_segments_and_fusion_adds_fe
 
 def test_auto_plane_depth_is_the_median_scene_depth(sequence) -> None:  # type: ignore[no-untyped-def]
     fe = Frontend(sequence, "fusion", plane_depth="auto", prefetch=0)
-    sim = simulator_like("tiny")
+    sim = simulator_for("tiny")
     truth = float(np.nanmedian(sim.render_depth(0, int(sequence.frames.t_mid_ns[0]))))
     assert fe.plane_depth_m == pytest.approx(truth, rel=0.15), (fe.plane_depth_m, truth)
     # The events mode measures the same depth (its β is always 1, the exposure test is not).

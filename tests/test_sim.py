@@ -15,7 +15,7 @@ from dhptam import SE3, _core
 from dhptam.cli import main
 from dhptam.datasets import load_tumvie
 from dhptam.errors import InputError, ParseError
-from dhptam.sim import GROUND_TRUTH_FILE, IMU_FROM_MARKER, PRESETS, RIGS, load_photos, simulate
+from dhptam.sim import GROUND_TRUTH_FILE, IMU_FROM_MARKER, PRESETS, RIGS, load_photos, simulate, simulator_for
 
 HDR_DURATION_S = 2.0
 
@@ -213,6 +213,27 @@ def test_file_trajectories_are_fitted_into_the_room(tmp_path: Path):
     with pytest.raises(ParseError) as err:
         _core.sim_file_trajectory(str(bad), "tum")
     assert err.value.line == 3 and err.value.path == str(bad)
+
+
+def test_simulator_for_rebuilds_the_simulator_that_wrote_a_sequence(tmp_path: Path):
+    trajectory = str(shared_path("data", "trajectories", "esim_quadrotor_circles.csv"))
+    summary = simulate(tmp_path, preset="tiny", duration_s=0.3, seed=4, trajectory=trajectory)
+    sim = simulator_for("tiny", seed=4, duration_s=0.3, trajectory=trajectory)
+    other = simulator_for("tiny", seed=4, duration_s=0.3)
+    with load_tumvie(summary.path) as seq:
+        first = seq.frames[0]
+    # The first frame pair (later ones depend on the auto-exposure's history) up to the JPEG
+    # compression of the written images; the built-in motion sees another view.
+    for simulator, most, least in ((sim, 3.0, 0.0), (other, np.inf, 15.0)):
+        _, left, right = simulator.frame_pair(first.t_ns)
+        for image, written in ((left, first.left), (right, first.right)):
+            assert least <= np.abs(image.astype(np.float64) - written).mean() <= most
+    truth = np.loadtxt(summary.path / GROUND_TRUTH_FILE)
+    t_ns = np.round(truth[:, 0] * 1e9).astype(np.int64)
+    assert np.allclose(sim.world_from_cam(0, t_ns), truth[:, 1:], atol=1e-8)
+    assert not np.allclose(other.world_from_cam(0, t_ns), truth[:, 1:], atol=1e-3)
+    with pytest.raises(InputError, match="preset"):
+        simulator_for("nope")
 
 
 def test_bad_arguments_raise_input_errors(tmp_path: Path):

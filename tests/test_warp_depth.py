@@ -9,13 +9,13 @@ from typing import Any
 
 import numpy as np
 import pytest
-from sim_truth import simulator_like
 
 import dhptam
 from dhptam import _core
 from dhptam.datasets import load_tumvie
 from dhptam.frontend import Frontend
 from dhptam.run import _DepthFeed, run
+from dhptam.sim import simulator_for
 
 
 def _frames_csv(out: Path) -> list[dict[str, str]]:
@@ -56,7 +56,7 @@ def test_tracked_warp_depth_puts_event_edges_closer_to_frame_edges_than_infinity
     depths = [float(r["warp_depth_m"]) for r in rows]
     assert depths[0] == 0.0  # nothing tracked yet: the configured plane, at infinity
     assert all(d > 0.0 for d in depths[1:]), depths
-    sim = simulator_like("desk", seed=1, duration_s=1.2)
+    sim = simulator_for("desk", seed=1, duration_s=1.2)
     with load_tumvie(sim_desk_run) as seq:
         fe = Frontend(seq, "fusion", prefetch=0)
         checked = 0

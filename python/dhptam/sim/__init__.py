@@ -21,7 +21,7 @@ Example::
 from __future__ import annotations
 
 from .presets import DEFAULT_PRESET, IMU_FROM_MARKER, MOTIONS, PRESETS, PROFILES, RIGS, Preset, RigSpec
-from .simulate import GROUND_TRUTH_FILE, SimulationSummary, simulate
+from .simulate import GROUND_TRUTH_FILE, SimulationSummary, simulate, simulator_for
 from .textures import PHOTO_NAMES, load_photos
 
 __all__ = [
@@ -38,4 +38,5 @@ __all__ = [
     "SimulationSummary",
     "load_photos",
     "simulate",
+    "simulator_for",
 ]

@@ -14,7 +14,7 @@ from .. import _core
 from .._core import Config
 from ..datasets import CAMERA_KEYS, RigCalibration, TumVieWriter, compose_poses
 from ..errors import InputError
-from .presets import DEFAULT_PRESET, IMU_FROM_MARKER, MOTIONS, PRESETS, PROFILES, RIGS
+from .presets import DEFAULT_PRESET, IMU_FROM_MARKER, MOTIONS, PRESETS, PROFILES, RIGS, Preset, RigSpec
 from .textures import load_photos
 
 log = logging.getLogger(__name__)
@@ -60,6 +60,55 @@ def _tum_lines(t_ns: npt.NDArray[np.int64], poses: npt.NDArray[np.float64]) -> s
         for t, pose in zip(t_ns.tolist(), poses, strict=True)
     ]
     return "# timestamp[s] tx ty tz qx qy qz qw (world_from_cam of frame_left)\n" + "\n".join(rows) + "\n"
+
+
+def _build(
+    spec: Preset,
+    seed: int,
+    duration_s: float | None,
+    profile: str,
+    motion: str,
+    config: Config,
+    shake: tuple[float, float] | None,
+) -> tuple[_core.Simulator, RigSpec, int]:
+    """The simulator of a preset's rig along ``motion``, its rig and the simulated span (ns)."""
+    rig = RIGS[spec.rig]
+    cameras, imu_from_cam = rig.cameras(), rig.imu_from_cam()
+    requested_ns = round((duration_s if duration_s is not None else spec.duration_s) * _NS)
+    traj_t, traj_poses = _trajectory(motion, requested_ns)
+    if shake is not None:
+        traj_poses = _shaken(traj_t, traj_poses, _span_ns(shake, "shake"))
+    duration_ns = min(requested_ns, int(traj_t[-1]))
+    sim = _core.Simulator(
+        [cameras[k] for k in CAMERA_KEYS],
+        [imu_from_cam[k] for k in CAMERA_KEYS],
+        load_photos(),
+        traj_t,
+        traj_poses,
+        profile,
+        duration_ns,
+        seed,
+        config,
+    )
+    return sim, rig, duration_ns
+
+
+def simulator_for(
+    preset: str = DEFAULT_PRESET,
+    *,
+    seed: int = 0,
+    duration_s: float | None = None,
+    trajectory: str | None = None,
+    config: Config | None = None,
+) -> _core.Simulator:
+    """The simulator that :func:`simulate` drives for the same arguments (same rig,
+    photographs, trajectory, lighting and seed), for ground truth a sequence's files do not
+    hold, such as ``render_depth`` of any camera at any time."""
+    if preset not in PRESETS:
+        raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}", field="preset")
+    spec = PRESETS[preset]
+    motion = trajectory or spec.motion
+    return _build(spec, seed, duration_s, spec.profile, motion, config or Config(), None)[0]
 
 
 def simulate(
@@ -131,31 +180,14 @@ def simulate(
         raise InputError(f"duration must be positive, got {duration_s}", field="duration")
     config = config or Config()
     fps = float(config.to_dict()["sim"]["fps"])
-    rig = RIGS[spec.rig]
-    cameras, imu_from_cam = rig.cameras(), rig.imu_from_cam()
-
-    requested_ns = round((duration_s if duration_s is not None else spec.duration_s) * _NS)
-    motion = trajectory or spec.motion
-    traj_t, traj_poses = _trajectory(motion, requested_ns)
-    if shake is not None:
-        traj_poses = _shaken(traj_t, traj_poses, _span_ns(shake, "shake"))
     covered = _span_ns(blackout, "blackout") if blackout is not None else None
-    duration_ns = min(requested_ns, int(traj_t[-1]))
-    frame_step_ns = round(_NS / fps)
-    n_frames = max(1, duration_ns // frame_step_ns)
+    motion = trajectory or spec.motion
 
     started = time.perf_counter()
-    sim = _core.Simulator(
-        [cameras[k] for k in CAMERA_KEYS],
-        [imu_from_cam[k] for k in CAMERA_KEYS],
-        load_photos(),
-        traj_t,
-        traj_poses,
-        profile,
-        duration_ns,
-        seed,
-        config,
-    )
+    sim, rig, duration_ns = _build(spec, seed, duration_s, profile, motion, config, shake)
+    cameras, imu_from_cam = rig.cameras(), rig.imu_from_cam()
+    frame_step_ns = round(_NS / fps)
+    n_frames = max(1, duration_ns // frame_step_ns)
     log.info(
         "simulating %s: preset %s, %s, %s lighting, %.2f s, %d frame pairs, seed %d",
         name or preset,
