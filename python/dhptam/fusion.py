@@ -58,6 +58,11 @@ def fuse(frame: npt.NDArray[np.uint8], e3ct: npt.NDArray[np.float32], beta: floa
     )
 
 
+def _scale_list(scales: npt.ArrayLike | None) -> list[float] | None:
+    """Per-channel normalisation scales as the binding takes them (float32 values)."""
+    return None if scales is None else [float(s) for s in np.asarray(scales, np.float32).ravel()]
+
+
 def warp_to_frame(
     image: npt.NDArray[np.float32],
     k_event: npt.ArrayLike,
@@ -91,7 +96,7 @@ def warp_to_frame(
         int(width),
         int(height),
         pixels,
-        None if scales is None else [float(s) for s in np.asarray(scales, np.float32).ravel()],
+        _scale_list(scales),
     )
 
 
@@ -121,7 +126,7 @@ def warp_and_fuse(
         align_px,
         np.ascontiguousarray(frame, dtype=np.uint8),
         float(beta),
-        None if scales is None else [float(s) for s in np.asarray(scales, np.float32).ravel()],
+        _scale_list(scales),
     )
 
 
