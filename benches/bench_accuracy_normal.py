@@ -11,6 +11,7 @@ truth (evo, SE(3) alignment, left frame camera). Prints a Markdown table for
 docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
+        [--features orb]
         [--out bench-accuracy] [--sync] [--warp-depth plane|tracked|both]
 
 ``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
@@ -45,6 +46,7 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=4.0, help="seconds of each trajectory (default 4)")
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
     parser.add_argument("--modes", default="fusion,frames,events")
+    parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy"))
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
     parser.add_argument(
@@ -73,7 +75,8 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"normal-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each trajectory, `desk` preset (small rig, normal "
-        f"lighting), seed {args.seed}; {'synchronous' if args.sync else 'threaded'} mapping; "
+        f"lighting), seed {args.seed}, features {args.features}; "
+        f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         *TABLE_HEAD,
@@ -100,7 +103,13 @@ def main() -> int:
                 compared = len(warps) > 1 and mode != "frames"
                 out = args.out / name / (f"{mode}-{warp}" if compared else mode)
                 result, ev = evaluated_run(
-                    sequence, out, reference, mode=mode, config=config, threaded=not args.sync
+                    sequence,
+                    out,
+                    reference,
+                    mode=mode,
+                    features=args.features,
+                    config=config,
+                    threaded=not args.sync,
                 )
                 lines.append(table_row(f"{name}, warp {warp}" if compared else name, mode, result, ev))
     return finish_table(lines, args.out)
