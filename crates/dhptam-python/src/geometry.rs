@@ -64,6 +64,28 @@ fn map_points<'py>(
         .into_pyarray(py))
 }
 
+/// `f` applied to a Python argument holding points: an (N, 3) array gives an (N, 3) array,
+/// one 3-vector (1-D array or sequence of 3 numbers) gives a 3-vector.
+fn map_point_arg(
+    py: Python<'_>,
+    arg: &Bound<'_, PyAny>,
+    f: impl Fn(Vector3<f64>) -> Vector3<f64> + Send + Sync,
+) -> PyResult<Py<PyAny>> {
+    let single = arg
+        .getattr("ndim")
+        .and_then(|d| d.extract::<usize>())
+        .map(|d| d == 1)
+        .unwrap_or(false)
+        || arg.extract::<Vec<f64>>().is_ok();
+    let points = arrays::rows(arg, 3, "points")?;
+    let out = map_points(py, &points, f)?;
+    Ok(if single {
+        out.reshape([3])?.into_any().unbind()
+    } else {
+        out.into_any().unbind()
+    })
+}
+
 /// A 3-D rotation (unit quaternion inside).
 ///
 /// Quaternions enter and leave in (x, y, z, w) order, Hamilton convention.
@@ -187,20 +209,8 @@ impl PySo3 {
         if let Ok(other) = rhs.extract::<PyRef<'_, PySo3>>() {
             return Ok(Py::new(py, PySo3::from(self.inner * other.inner))?.into_any());
         }
-        let single = rhs
-            .getattr("ndim")
-            .and_then(|d| d.extract::<usize>())
-            .map(|d| d == 1)
-            .unwrap_or(false)
-            || rhs.extract::<Vec<f64>>().is_ok();
-        let points = arrays::rows(rhs, 3, "points")?;
         let r = self.inner;
-        let out = map_points(py, &points, move |p| r * p)?;
-        Ok(if single {
-            out.reshape([3])?.into_any().unbind()
-        } else {
-            out.into_any().unbind()
-        })
+        map_point_arg(py, rhs, move |p| r * p)
     }
 
     fn __repr__(&self) -> String {
@@ -343,20 +353,8 @@ impl PySe3 {
         if let Ok(other) = rhs.extract::<PyRef<'_, PySe3>>() {
             return Ok(Py::new(py, PySe3::from(self.inner * other.inner))?.into_any());
         }
-        let single = rhs
-            .getattr("ndim")
-            .and_then(|d| d.extract::<usize>())
-            .map(|d| d == 1)
-            .unwrap_or(false)
-            || rhs.extract::<Vec<f64>>().is_ok();
-        let points = arrays::rows(rhs, 3, "points")?;
         let t = self.inner;
-        let out = map_points(py, &points, move |p| t.transform_point(&p))?;
-        Ok(if single {
-            out.reshape([3])?.into_any().unbind()
-        } else {
-            out.into_any().unbind()
-        })
+        map_point_arg(py, rhs, move |p| t.transform_point(&p))
     }
 
     fn __repr__(&self) -> String {
