@@ -12,7 +12,7 @@ frame camera). Prints a Markdown table for docs/BENCHMARKS.md and writes the run
 files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_presets.py [--presets desk,dark,...] [--duration 4]
-        [--seed 3] [--modes fusion,frames,events] [--out bench-presets] [--sync]
+        [--seed 3] [--modes fusion,frames,events] [--features orb] [--out bench-presets] [--sync]
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=4.0, help="seconds of each preset (default 4)")
     parser.add_argument("--seed", type=int, default=3, help="simulator seed (default 3)")
     parser.add_argument("--modes", default="fusion,frames,events")
+    parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
     parser.add_argument("--out", type=Path, default=Path("bench-presets"))
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
     args = parser.parse_args()
@@ -50,7 +51,8 @@ def main() -> int:
 
     root = cache_dir() / "sequences" / f"presets-seed{args.seed}-{args.duration:g}s"
     lines = [
-        f"Sequences: first {args.duration:g} s of each preset, seed {args.seed}, default "
+        f"Sequences: first {args.duration:g} s of each preset, seed {args.seed}, features "
+        f"{args.features}, default "
         f"configuration; {'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
@@ -64,7 +66,12 @@ def main() -> int:
         reference = load_trajectory(sequence / GROUND_TRUTH)
         for mode in modes:
             result, ev = evaluated_run(
-                sequence, args.out / preset / mode, reference, mode=mode, threaded=not args.sync
+                sequence,
+                args.out / preset / mode,
+                reference,
+                mode=mode,
+                features=args.features,
+                threaded=not args.sync,
             )
             lines.append(table_row(preset, mode, result, ev))
     return finish_table(lines, args.out)
