@@ -24,6 +24,7 @@ otherwise).
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import logging
@@ -596,14 +597,18 @@ def _track_all(
         rendered = None if feed.waits else render(prepared)
         return prepared, rendered, time.perf_counter() - t0
 
+    # [tracking] dvs_sigma_scale: event-dominated images locate keypoints less precisely.
+    dvs_sigma_scale = float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"])
+
     def extract(item: tuple[Any, Any, float]) -> tuple[Any, float, Any, Any, float, Any]:
         prepared, rendered, t_front = item
         t0 = time.perf_counter()
         frame, bridge = render(prepared) if rendered is None else rendered
         t1 = time.perf_counter()
-        left, right = extractor.extract(frame.left, frame.right)
+        left, right = _dvs_sigmas(extractor.extract(frame.left, frame.right), frame.bias, dvs_sigma_scale)
         if bridge is not None:
-            bridge = (bridge, extractor.extract(bridge.left, bridge.right))
+            other = extractor.extract(bridge.left, bridge.right)
+            bridge = (bridge, _dvs_sigmas(other, bridge.bias, dvs_sigma_scale))
         return frame, t_front + t1 - t0, left, right, time.perf_counter() - t1, bridge
 
     indices = iter(range(frontend.start, frontend.stop))
@@ -621,6 +626,16 @@ def _track_all(
             extracted.close()
             if bar is not None:
                 bar.close()
+
+
+def _dvs_sigmas(features: tuple[Any, Any], bias: str, scale: float) -> tuple[Any, Any]:
+    """The (left, right) features with their σ multiplied by ``scale`` when the image's
+    fusion is DVS-biased (``[tracking] dvs_sigma_scale``); unchanged otherwise."""
+    if scale == 1.0 or bias != "dvs":
+        return features
+    return tuple(  # type: ignore[return-value]
+        dataclasses.replace(f, sigmas=np.ascontiguousarray(f.sigmas * np.float32(scale))) for f in features
+    )
 
 
 def _track_frames(

@@ -3,7 +3,9 @@
 Input per frame: features of the RECTIFIED left and right images (pinhole, no distortion,
 the right camera at +baseline along the left x axis), as produced by ``dhptam.features``:
 anything with ``.keypoints`` ((N, 2) float32, x = column, y = row) and ``.descriptors``
-((N, D) float32 unit rows or (N, B) uint8) arrays. Both are read in place by the Rust core,
+((N, D) float32 unit rows or (N, B) uint8) arrays, and optionally ``.sigmas`` ((N,) float32,
+each keypoint's location noise in pixels; the left image's weigh its residuals by 1/σ with
+``[tracking] keypoint_sigma = "octave"``). All are read in place by the Rust core,
 which tracks with the GIL released; mapping runs on its own thread unless ``threaded=False``
 (then inline and deterministic). Poses are ``world_from_cam`` 4×4 matrices of the rectified
 left camera; the world frame is the first keyframe's camera frame.
@@ -32,6 +34,11 @@ class FeatureSet(Protocol):
 
     @property
     def descriptors(self) -> NDArray[np.float32] | NDArray[np.uint8]: ...
+
+
+def _sigmas(features: FeatureSet) -> NDArray[np.float32] | None:
+    """The features' per-keypoint σ, or ``None`` (1 px each) when they carry none."""
+    return getattr(features, "sigmas", None)
 
 
 @dataclass(frozen=True)
@@ -98,7 +105,9 @@ class System:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds."""
         return _track_result(
             t_ns,
-            self._core.track(int(t_ns), left.keypoints, left.descriptors, right.keypoints, right.descriptors),
+            self._core.track(
+                int(t_ns), left.keypoints, left.descriptors, right.keypoints, right.descriptors, _sigmas(left)
+            ),
         )
 
     def predict(self, t_ns: int) -> TrackResult:
@@ -134,6 +143,7 @@ class System:
             int(t_ns),
             pl.keypoints, pl.descriptors, pr.keypoints, pr.descriptors,
             ol.keypoints, ol.descriptors, orr.keypoints, orr.descriptors,
+            _sigmas(pl), _sigmas(ol),
         )  # fmt: skip
         if r is None:
             return None
