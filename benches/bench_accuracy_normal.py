@@ -12,6 +12,7 @@ docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` un
 
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
         [--out bench-accuracy] [--sync] [--warp-depth plane|tracked|both]
+        [--keypoint-sigma octave|unit]
 
 ``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
 ``"plane"`` in the same invocation (before/after figures from one run of the same code); the
@@ -52,6 +53,12 @@ def main() -> int:
         default="plane",
         help='[fusion] warp_depth: "tracked", "plane" or "both" (the two in the same run)',
     )
+    parser.add_argument(
+        "--keypoint-sigma",
+        choices=("octave", "unit"),
+        default="octave",
+        help='[tracking] keypoint_sigma ("unit": σ = 1 px for every keypoint, the old weighting)',
+    )
     args = parser.parse_args()
 
     from dhptam import Config
@@ -73,7 +80,8 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"normal-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each trajectory, `desk` preset (small rig, normal "
-        f"lighting), seed {args.seed}; {'synchronous' if args.sync else 'threaded'} mapping; "
+        f"lighting), seed {args.seed}, keypoint σ {args.keypoint_sigma}; "
+        f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         *TABLE_HEAD,
@@ -96,7 +104,9 @@ def main() -> int:
         for mode in modes:
             # The warp depth only matters where events are warped.
             for warp in warps if mode != "frames" else warps[:1]:
-                config = Config.from_toml(f'[fusion]\nwarp_depth = "{warp}"')
+                config = Config.from_toml(
+                    f'[fusion]\nwarp_depth = "{warp}"\n[tracking]\nkeypoint_sigma = "{args.keypoint_sigma}"'
+                )
                 compared = len(warps) > 1 and mode != "frames"
                 out = args.out / name / (f"{mode}-{warp}" if compared else mode)
                 result, ev = evaluated_run(

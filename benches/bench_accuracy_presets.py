@@ -13,6 +13,9 @@ files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_presets.py [--presets desk,dark,...] [--duration 4]
         [--seed 3] [--modes fusion,frames,events] [--out bench-presets] [--sync]
+        [--keypoint-sigma octave|unit]
+
+``--keypoint-sigma unit`` replaces the default per-keypoint σ by 1 px (for before/after tables).
 """
 
 from __future__ import annotations
@@ -38,8 +41,15 @@ def main() -> int:
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--out", type=Path, default=Path("bench-presets"))
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
+    parser.add_argument(
+        "--keypoint-sigma",
+        choices=("octave", "unit"),
+        default="octave",
+        help='[tracking] keypoint_sigma ("unit": σ = 1 px for every keypoint, the old weighting)',
+    )
     args = parser.parse_args()
 
+    from dhptam import Config
     from dhptam.demo import GROUND_TRUTH, cache_dir
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
@@ -51,11 +61,13 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"presets-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each preset, seed {args.seed}, default "
-        f"configuration; {'synchronous' if args.sync else 'threaded'} mapping; "
+        f"configuration, keypoint σ {args.keypoint_sigma}; "
+        f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         *TABLE_HEAD,
     ]
+    config = Config.from_toml(f'[tracking]\nkeypoint_sigma = "{args.keypoint_sigma}"')
     for preset in presets:
         sequence = root / preset
         if not (sequence / GROUND_TRUTH).is_file():
@@ -64,8 +76,9 @@ def main() -> int:
         reference = load_trajectory(sequence / GROUND_TRUTH)
         for mode in modes:
             result, ev = evaluated_run(
-                sequence, args.out / preset / mode, reference, mode=mode, threaded=not args.sync
-            )
+                sequence, args.out / preset / mode, reference, mode=mode, config=config,
+                threaded=not args.sync,
+            )  # fmt: skip
             lines.append(table_row(preset, mode, result, ev))
     return finish_table(lines, args.out)
 
