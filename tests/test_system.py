@@ -212,6 +212,9 @@ def test_bad_keypoint_sigmas_are_refused_with_names() -> None:
             system._core.track(
                 0, f.left.keypoints, f.left.descriptors, f.right.keypoints, f.right.descriptors, bad
             )
+    for scale in (0.0, -1.0, float("nan")):
+        with pytest.raises(dhptam.InputError, match=re.escape("left.sigma_scale")):
+            system.track(0, f.left, f.right, sigma_scale=scale)
 
 
 def _switch_appearance(frames: list[Frame], at: int, seed: int = 7) -> list[Frame]:

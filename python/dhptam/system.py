@@ -101,12 +101,19 @@ class System:
         self.calibration = calibration
         self._core = _core.PySystem(c.fx, c.fy, c.cx, c.cy, c.baseline_m, c.width, c.height, config, threaded)
 
-    def track(self, t_ns: int, left: FeatureSet, right: FeatureSet) -> TrackResult:
-        """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds."""
+    def track(self, t_ns: int, left: FeatureSet, right: FeatureSet, sigma_scale: float = 1.0) -> TrackResult:
+        """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds; ``sigma_scale``
+        multiplies every keypoint σ of the frame (e.g. an event-dominated image)."""
         return _track_result(
             t_ns,
             self._core.track(
-                int(t_ns), left.keypoints, left.descriptors, right.keypoints, right.descriptors, _sigmas(left)
+                int(t_ns),
+                left.keypoints,
+                left.descriptors,
+                right.keypoints,
+                right.descriptors,
+                _sigmas(left),
+                float(sigma_scale),
             ),
         )
 
@@ -125,6 +132,7 @@ class System:
         t_ns: int,
         primary: tuple[FeatureSet, FeatureSet],
         other: tuple[FeatureSet, FeatureSet],
+        sigma_scales: tuple[float, float] = (1.0, 1.0),
     ) -> BridgeResult | None:
         """Inserts a bridge keyframe at the last tracked frame (taken at ``t_ns``) across a
         change of image appearance, e.g. the fusion switching between frame- and
@@ -137,13 +145,14 @@ class System:
         map points and adds the other image's stereo points, so the next frames, which look
         like ``other``, track against it and the map stays one piece. ``None`` when refused:
         the last frame is not at ``t_ns``, was lost, or too few primary features matched.
+        ``sigma_scales`` multiply the keypoint σ of ``primary`` and ``other``.
         """
         (pl, pr), (ol, orr) = primary, other
         r = self._core.bridge(
             int(t_ns),
             pl.keypoints, pl.descriptors, pr.keypoints, pr.descriptors,
             ol.keypoints, ol.descriptors, orr.keypoints, orr.descriptors,
-            _sigmas(pl), _sigmas(ol),
+            _sigmas(pl), _sigmas(ol), float(sigma_scales[0]), float(sigma_scales[1]),
         )  # fmt: skip
         if r is None:
             return None

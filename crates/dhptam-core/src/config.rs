@@ -339,8 +339,9 @@ config_section! {
         /// ablations).
         keypoint_sigma: String = "octave".to_owned(),
         /// Factor on the keypoint σ of frames whose fusion is DVS-biased (event-dominated
-        /// images locate corners less precisely than frames); applied by the Python
-        /// front-end (`dhptam.run`). 1 leaves σ as the extractor gives it.
+        /// images locate corners less precisely than frames), with either `keypoint_sigma`
+        /// ("unit": σ = this factor on those frames); applied by the Python front-end
+        /// (`dhptam.run`). 1 leaves σ as it is.
         dvs_sigma_scale: f64 = 1.0,
     }
 }

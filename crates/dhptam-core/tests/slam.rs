@@ -153,6 +153,7 @@ fn threaded_stress_and_prompt_shutdown() {
         keypoints: &f.left.keypoints,
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
         sigmas: None,
+        sigma_scale: 1.0,
     };
     assert!(system.track(f.t_ns, left, left).is_err());
 }
@@ -605,11 +606,13 @@ fn features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
             keypoints: &f.left.keypoints,
             descriptors: Descriptors::float(&f.left.descriptors, dim).unwrap(),
             sigmas: None,
+            sigma_scale: 1.0,
         },
         FrameFeatures {
             keypoints: &f.right.keypoints,
             descriptors: Descriptors::float(&f.right.descriptors, dim).unwrap(),
             sigmas: None,
+            sigma_scale: 1.0,
         },
     )
 }

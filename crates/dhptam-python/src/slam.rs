@@ -48,6 +48,7 @@ fn features<'a>(
     keypoints: &'a PyReadonlyArray2<'_, f32>,
     descriptors: &'a DescriptorArray<'_>,
     sigmas: Option<&'a PyReadonlyArray1<'_, f32>>,
+    sigma_scale: f32,
 ) -> PyResult<FrameFeatures<'a>> {
     Ok(FrameFeatures {
         keypoints: keypoints
@@ -60,6 +61,7 @@ fn features<'a>(
                     .map_err(|_| input_error("sigmas", "a C-contiguous array", "a strided view"))
             })
             .transpose()?,
+        sigma_scale,
     })
 }
 
@@ -140,10 +142,11 @@ impl PySystem {
     }
 
     /// Tracks one frame; returns (pose (4, 4) world_from_cam, state, inliers, keyframe).
-    /// `left_sigmas`: the left keypoints' σ in pixels (None: 1 each).
+    /// `left_sigmas`: the left keypoints' σ in pixels (None: 1 each); `sigma_scale`: a
+    /// factor on all of them (e.g. an event-dominated image).
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
-        left_sigmas=None
+        left_sigmas=None, sigma_scale=1.0
     ))]
     #[allow(clippy::too_many_arguments)]
     fn track<'py>(
@@ -155,13 +158,15 @@ impl PySystem {
         right_keypoints: &Bound<'py, PyAny>,
         right_descriptors: &Bound<'py, PyAny>,
         left_sigmas: Option<&Bound<'py, PyAny>>,
+        sigma_scale: f32,
     ) -> PyResult<TrackTuple<'py>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
         let ls = sigmas(left_sigmas, "left.sigmas")?;
-        let (left, right) = (features(&lk, &ld, ls.as_ref())?, features(&rk, &rd, None)?);
+        let left = features(&lk, &ld, ls.as_ref(), sigma_scale)?;
+        let right = features(&rk, &rd, None, sigma_scale)?;
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
@@ -180,12 +185,13 @@ impl PySystem {
     /// Bridge keyframe at the last tracked frame `t_ns` (see `dhptam.System.bridge`):
     /// `primary` features are the image that frame was tracked with, `other` the same data
     /// rendered the other way; `left_sigmas`/`other_left_sigmas` their left keypoints' σ
-    /// (None: 1 each). Returns (keyframe id, re-matched map points, points from the other
+    /// (None: 1 each), `sigma_scale`/`other_sigma_scale` factors on them. Returns (keyframe id, re-matched map points, points from the other
     /// image), or None when refused.
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
         other_left_keypoints, other_left_descriptors, other_right_keypoints,
-        other_right_descriptors, left_sigmas=None, other_left_sigmas=None
+        other_right_descriptors, left_sigmas=None, other_left_sigmas=None, sigma_scale=1.0,
+        other_sigma_scale=1.0
     ))]
     #[allow(clippy::too_many_arguments)]
     fn bridge<'py>(
@@ -202,6 +208,8 @@ impl PySystem {
         other_right_descriptors: &Bound<'py, PyAny>,
         left_sigmas: Option<&Bound<'py, PyAny>>,
         other_left_sigmas: Option<&Bound<'py, PyAny>>,
+        sigma_scale: f32,
+        other_sigma_scale: f32,
     ) -> PyResult<Option<(u64, usize, usize)>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
@@ -213,10 +221,13 @@ impl PySystem {
         let ord = DescriptorArray::extract(other_right_descriptors, "other_right.descriptors")?;
         let ls = sigmas(left_sigmas, "left.sigmas")?;
         let ols = sigmas(other_left_sigmas, "other_left.sigmas")?;
-        let primary = (features(&lk, &ld, ls.as_ref())?, features(&rk, &rd, None)?);
+        let primary = (
+            features(&lk, &ld, ls.as_ref(), sigma_scale)?,
+            features(&rk, &rd, None, sigma_scale)?,
+        );
         let other = (
-            features(&olk, &old, ols.as_ref())?,
-            features(&ork, &ord, None)?,
+            features(&olk, &old, ols.as_ref(), other_sigma_scale)?,
+            features(&ork, &ord, None, other_sigma_scale)?,
         );
         let b = py
             .detach_guarded("slam::bridge", || {

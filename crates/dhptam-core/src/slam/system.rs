@@ -35,6 +35,10 @@ pub struct FrameFeatures<'a> {
     /// ORB; `None`: 1 px each. Only the left image's are used (a stereo match shares its
     /// left keypoint's σ), and only with `[tracking] keypoint_sigma = "octave"`.
     pub sigmas: Option<&'a [f32]>,
+    /// Factor on every keypoint σ of the image (finite, positive), with either
+    /// `keypoint_sigma`: images known to locate keypoints less precisely as a whole, e.g.
+    /// event-dominated fusion (`[tracking] dvs_sigma_scale`, applied by the Python front-end).
+    pub sigma_scale: f32,
 }
 
 /// Running statistics of one stage's wall time.
@@ -337,6 +341,13 @@ impl System {
                 f.keypoints[i],
             ));
         }
+        if !(f.sigma_scale.is_finite() && f.sigma_scale > 0.0) {
+            return Err(Error::invalid(
+                format!("{side}.sigma_scale"),
+                "a finite positive factor",
+                f.sigma_scale,
+            ));
+        }
         if let Some(s) = f.sigmas {
             if s.len() != n {
                 return Err(Error::invalid(
@@ -389,9 +400,12 @@ impl System {
                 right.descriptors,
             )
         });
+        let scale = left.sigma_scale;
         let sigmas = match left.sigmas {
-            Some(s) if c.tracking.keypoint_sigma == "octave" => s.to_vec(),
-            _ => vec![1.0; left_xy.len()],
+            Some(s) if c.tracking.keypoint_sigma == "octave" => {
+                s.iter().map(|v| v * scale).collect()
+            }
+            _ => vec![scale; left_xy.len()],
         };
         Ok(StereoFrame {
             t_ns,
