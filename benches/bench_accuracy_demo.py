@@ -26,7 +26,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import choices, evaluated_run, finish_table
+from _accuracy import choices, evaluated_run, finish_table, keypoint_sigma_toml
 
 
 def main() -> int:
@@ -45,8 +45,8 @@ def main() -> int:
     parser.add_argument(
         "--keypoint-sigma",
         choices=("octave", "unit"),
-        default="octave",
-        help='[tracking] keypoint_sigma ("unit": σ = 1 px for every keypoint, the old weighting)',
+        default=None,
+        help="[tracking] keypoint_sigma (default: the configuration's)",
     )
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy-demo"))
     args = parser.parse_args()
@@ -63,7 +63,7 @@ def main() -> int:
     warps = {"tracked": ["tracked"], "plane": ["plane"], "both": ["tracked", "plane"]}[args.warp_depth]
     lines = [
         f"`demo` preset (HDR desk spiral, 4 s, 80 frames), features {args.features}, "
-        f"keypoint σ {args.keypoint_sigma}; "
+        f"keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         "| seed | mode | bridge | flood predict | warp depth | back-end | frames | tracked | predicted "
@@ -83,7 +83,7 @@ def main() -> int:
             for bridge, flood, warp in variants:
                 config = _core.Config.from_toml(
                     f"[fusion]\nbridge = {str(bridge).lower()}\nflood_predict = {str(flood).lower()}"
-                    f'\nwarp_depth = "{warp}"\n[tracking]\nkeypoint_sigma = "{args.keypoint_sigma}"'
+                    f'\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma)
                 )
                 for backend in backends:
                     tag = ("" if bridge else "-nobridge") + ("" if flood else "-noflood")

@@ -27,7 +27,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, table_row
+from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, keypoint_sigma_toml, table_row
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -56,8 +56,8 @@ def main() -> int:
     parser.add_argument(
         "--keypoint-sigma",
         choices=("octave", "unit"),
-        default="octave",
-        help='[tracking] keypoint_sigma ("unit": σ = 1 px for every keypoint, the old weighting)',
+        default=None,
+        help="[tracking] keypoint_sigma (default: the configuration's)",
     )
     args = parser.parse_args()
 
@@ -80,7 +80,7 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"normal-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each trajectory, `desk` preset (small rig, normal "
-        f"lighting), seed {args.seed}, keypoint σ {args.keypoint_sigma}; "
+        f"lighting), seed {args.seed}, keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
@@ -105,7 +105,7 @@ def main() -> int:
             # The warp depth only matters where events are warped.
             for warp in warps if mode != "frames" else warps[:1]:
                 config = Config.from_toml(
-                    f'[fusion]\nwarp_depth = "{warp}"\n[tracking]\nkeypoint_sigma = "{args.keypoint_sigma}"'
+                    f'[fusion]\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma)
                 )
                 compared = len(warps) > 1 and mode != "frames"
                 out = args.out / name / (f"{mode}-{warp}" if compared else mode)

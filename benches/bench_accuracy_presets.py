@@ -15,7 +15,7 @@ files and ``report.md`` under ``--out``.
         [--seed 3] [--modes fusion,frames,events] [--out bench-presets] [--sync]
         [--keypoint-sigma octave|unit]
 
-``--keypoint-sigma unit`` replaces the default per-keypoint σ by 1 px (for before/after tables).
+``--keypoint-sigma octave|unit`` overrides ``[tracking] keypoint_sigma`` (before/after tables).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, table_row
+from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, keypoint_sigma_toml, table_row
 
 DEFAULT_PRESETS = "desk,desk-mixed,dark,desk-flicker,1d-trans,6dof,loop"
 
@@ -44,8 +44,8 @@ def main() -> int:
     parser.add_argument(
         "--keypoint-sigma",
         choices=("octave", "unit"),
-        default="octave",
-        help='[tracking] keypoint_sigma ("unit": σ = 1 px for every keypoint, the old weighting)',
+        default=None,
+        help="[tracking] keypoint_sigma (default: the configuration's)",
     )
     args = parser.parse_args()
 
@@ -61,13 +61,13 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"presets-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each preset, seed {args.seed}, default "
-        f"configuration, keypoint σ {args.keypoint_sigma}; "
+        f"configuration, keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         *TABLE_HEAD,
     ]
-    config = Config.from_toml(f'[tracking]\nkeypoint_sigma = "{args.keypoint_sigma}"')
+    config = Config.from_toml(keypoint_sigma_toml(args.keypoint_sigma))
     for preset in presets:
         sequence = root / preset
         if not (sequence / GROUND_TRUTH).is_file():

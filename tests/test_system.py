@@ -177,21 +177,23 @@ def test_keypoint_sigmas_weigh_tracking_and_mapping(tmp_path: Path) -> None:
     # Weighting by 1/σ trusts the precise half: measured 1.9 mm against 5.3 mm.
     assert errors["octave"] < 0.6 * errors["unit"], errors
     # "unit" is the old behaviour: the same poses as the same keypoints without σ.
-    unit_config = dhptam.Config.from_toml('[tracking]\nkeypoint_sigma = "unit"')
-    unit = dhptam.System(CALIB, unit_config, threaded=False)
+    unit = dhptam.System(
+        CALIB, dhptam.Config.from_toml('[tracking]\nkeypoint_sigma = "unit"'), threaded=False
+    )
     plain = dhptam.System(CALIB, threaded=False)
     for f, left in frames[:30]:
         r = unit.track(f.t_ns, left, f.right)
         p = plain.track(f.t_ns, type(f.left)(left.keypoints, left.descriptors), f.right)
         np.testing.assert_array_equal(r.pose, p.pose)
     # The σ travel with the keyframes through a saved map (format version 3).
-    reference = dhptam.System(CALIB, threaded=False)
+    octave = dhptam.Config.from_toml('[tracking]\nkeypoint_sigma = "octave"')
+    reference = dhptam.System(CALIB, octave, threaded=False)
     expected = [reference.track(f.t_ns, left, f.right) for f, left in frames[:40]]
-    first = dhptam.System(CALIB, threaded=False)
+    first = dhptam.System(CALIB, octave, threaded=False)
     for f, left in frames[:20]:
         first.track(f.t_ns, left, f.right)
     first.save_map(tmp_path / "map.bin")
-    second = dhptam.System(CALIB, threaded=False)
+    second = dhptam.System(CALIB, octave, threaded=False)
     second.load_map(tmp_path / "map.bin")
     for (f, left), e in zip(frames[20:40], expected[20:], strict=True):
         np.testing.assert_allclose(second.track(f.t_ns, left, f.right).pose, e.pose, atol=1e-9)

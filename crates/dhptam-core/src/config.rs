@@ -335,13 +335,13 @@ config_section! {
         /// Huber scale and outlier bound above, stated for σ = 1 px, widen by σ):
         /// "octave" takes the extractor's per-keypoint σ (ORB: 1.2^octave, SIFT: 2^octave,
         /// R2D2: the inverse of its pyramid scale; 1 for single-scale extractors); "unit"
-        /// gives every keypoint σ = 1 px (the behaviour before per-keypoint σ; for
-        /// ablations).
-        keypoint_sigma: String = "octave".to_owned(),
+        /// gives every keypoint σ = 1 px. Default "unit": with ORB, "octave" was not more
+        /// accurate across the simulator's sequences (docs/BENCHMARKS.md, "per-keypoint σ").
+        keypoint_sigma: String = "unit".to_owned(),
         /// Factor on the keypoint σ of frames whose fusion is DVS-biased (event-dominated
         /// images locate corners less precisely than frames), with either `keypoint_sigma`
         /// ("unit": σ = this factor on those frames); applied by the Python front-end
-        /// (`dhptam.run`). 1 leaves σ as it is.
+        /// (`dhptam.run`). 1 (default: 1.4 did not help on the HDR demo) leaves σ as it is.
         dvs_sigma_scale: f64 = 1.0,
     }
 }
