@@ -296,8 +296,10 @@ def to_features(
     """Features from torch tensors on any device, as float32 C-contiguous numpy arrays
     (``sigmas`` ``None``: 1 px each)."""
     kp, sc, de = (t.detach().float().cpu().contiguous().numpy() for t in (keypoints, scores, descriptors))
-    si = None if sigmas is None else np.ascontiguousarray(sigmas.detach().float().cpu().numpy())
-    return Features(np.ascontiguousarray(kp), np.ascontiguousarray(sc), np.ascontiguousarray(de), si)
+    arrays = (np.ascontiguousarray(kp), np.ascontiguousarray(sc), np.ascontiguousarray(de))
+    if sigmas is None:
+        return Features(*arrays)
+    return Features(*arrays, np.ascontiguousarray(sigmas.detach().float().cpu().numpy()))
 
 
 def refine_subpixel(
