@@ -23,6 +23,12 @@ def evaluated_run(sequence: Path, out: Path, reference: Any, **run_args: Any) ->
     return result, ev
 
 
+def keypoint_sigma_toml(keypoint_sigma: str | None) -> str:
+    """A ``[tracking] keypoint_sigma`` table for ``--keypoint-sigma`` (empty for ``None``: the
+    configuration's default)."""
+    return "" if keypoint_sigma is None else f'\n[tracking]\nkeypoint_sigma = "{keypoint_sigma}"\n'
+
+
 def choices(parser: Any, text: str, allowed: Any, what: str) -> list[str]:
     """The comma-separated items of ``text``, each checked against ``allowed`` (an argparse
     error naming ``what`` otherwise)."""

@@ -11,7 +11,8 @@ new map segments and relocalisations of each run) and writes the runs under ``--
 
     python benches/bench_accuracy_demo.py [--seeds 0,2] [--modes fusion,frames,events]
         [--backend threaded,sync] [--bridge on|off|both] [--flood on|off|both]
-        [--warp-depth plane|tracked|both] [--out bench-accuracy-demo]
+        [--warp-depth plane|tracked|both] [--keypoint-sigma octave|unit]
+        [--out bench-accuracy-demo]
 
 ``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
 ``"plane"`` (the default) in the same invocation.
@@ -25,7 +26,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import choices, evaluated_run, finish_table
+from _accuracy import choices, evaluated_run, finish_table, keypoint_sigma_toml
 
 
 def main() -> int:
@@ -41,6 +42,12 @@ def main() -> int:
     parser.add_argument(
         "--warp-depth", choices=("tracked", "plane", "both"), default="plane", help="[fusion] warp_depth"
     )
+    parser.add_argument(
+        "--keypoint-sigma",
+        choices=("octave", "unit"),
+        default=None,
+        help="[tracking] keypoint_sigma (default: the configuration's)",
+    )
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy-demo"))
     args = parser.parse_args()
 
@@ -55,7 +62,8 @@ def main() -> int:
     floods = {"on": [True], "off": [False], "both": [True, False]}[args.flood]
     warps = {"tracked": ["tracked"], "plane": ["plane"], "both": ["tracked", "plane"]}[args.warp_depth]
     lines = [
-        f"`demo` preset (HDR desk spiral, 4 s, 80 frames), features {args.features}; "
+        f"`demo` preset (HDR desk spiral, 4 s, 80 frames), features {args.features}, "
+        f"keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         "| seed | mode | bridge | flood predict | warp depth | back-end | frames | tracked | predicted "
@@ -75,7 +83,7 @@ def main() -> int:
             for bridge, flood, warp in variants:
                 config = _core.Config.from_toml(
                     f"[fusion]\nbridge = {str(bridge).lower()}\nflood_predict = {str(flood).lower()}"
-                    f'\nwarp_depth = "{warp}"'
+                    f'\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma)
                 )
                 for backend in backends:
                     tag = ("" if bridge else "-nobridge") + ("" if flood else "-noflood")

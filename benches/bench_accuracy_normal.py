@@ -13,6 +13,7 @@ docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` un
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
         [--features orb]
         [--out bench-accuracy] [--sync] [--warp-depth plane|tracked|both]
+        [--keypoint-sigma octave|unit]
 
 ``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
 ``"plane"`` in the same invocation (before/after figures from one run of the same code); the
@@ -27,7 +28,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, table_row
+from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, keypoint_sigma_toml, table_row
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -54,6 +55,12 @@ def main() -> int:
         default="plane",
         help='[fusion] warp_depth: "tracked", "plane" or "both" (the two in the same run)',
     )
+    parser.add_argument(
+        "--keypoint-sigma",
+        choices=("octave", "unit"),
+        default=None,
+        help="[tracking] keypoint_sigma (default: the configuration's)",
+    )
     args = parser.parse_args()
 
     from dhptam import Config
@@ -75,7 +82,8 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"normal-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each trajectory, `desk` preset (small rig, normal "
-        f"lighting), seed {args.seed}, features {args.features}; "
+        f"lighting), seed {args.seed}, features {args.features}, "
+        f"keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
@@ -99,7 +107,9 @@ def main() -> int:
         for mode in modes:
             # The warp depth only matters where events are warped.
             for warp in warps if mode != "frames" else warps[:1]:
-                config = Config.from_toml(f'[fusion]\nwarp_depth = "{warp}"')
+                config = Config.from_toml(
+                    f'[fusion]\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma)
+                )
                 compared = len(warps) > 1 and mode != "frames"
                 out = args.out / name / (f"{mode}-{warp}" if compared else mode)
                 result, ev = evaluated_run(

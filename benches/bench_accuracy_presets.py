@@ -13,6 +13,9 @@ files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_presets.py [--presets desk,dark,...] [--duration 4]
         [--seed 3] [--modes fusion,frames,events] [--features orb] [--out bench-presets] [--sync]
+        [--keypoint-sigma octave|unit]
+
+``--keypoint-sigma octave|unit`` overrides ``[tracking] keypoint_sigma`` (before/after tables).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, table_row
+from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, keypoint_sigma_toml, table_row
 
 DEFAULT_PRESETS = "desk,desk-mixed,dark,desk-flicker,1d-trans,6dof,loop"
 
@@ -39,8 +42,15 @@ def main() -> int:
     parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
     parser.add_argument("--out", type=Path, default=Path("bench-presets"))
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
+    parser.add_argument(
+        "--keypoint-sigma",
+        choices=("octave", "unit"),
+        default=None,
+        help="[tracking] keypoint_sigma (default: the configuration's)",
+    )
     args = parser.parse_args()
 
+    from dhptam import Config
     from dhptam.demo import GROUND_TRUTH, cache_dir
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
@@ -52,12 +62,13 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"presets-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each preset, seed {args.seed}, features "
-        f"{args.features}, default "
-        f"configuration; {'synchronous' if args.sync else 'threaded'} mapping; "
+        f"{args.features}, default configuration, keypoint σ {args.keypoint_sigma or 'default'}; "
+        f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         *TABLE_HEAD,
     ]
+    config = Config.from_toml(keypoint_sigma_toml(args.keypoint_sigma))
     for preset in presets:
         sequence = root / preset
         if not (sequence / GROUND_TRUTH).is_file():
@@ -71,6 +82,7 @@ def main() -> int:
                 reference,
                 mode=mode,
                 features=args.features,
+                config=config,
                 threaded=not args.sync,
             )
             lines.append(table_row(preset, mode, result, ev))

@@ -51,6 +51,7 @@ def test_outputs_follow_the_contract(extracted: dict, name: str) -> None:
         assert 20 < n <= 300
         assert f.keypoints.dtype == np.float32 and f.keypoints.shape == (n, 2)
         assert f.scores.dtype == np.float32 and f.scores.shape == (n,)
+        assert f.sigmas.dtype == np.float32 and f.sigmas.shape == (n,) and (f.sigmas >= 1.0).all()
         assert f.descriptors.shape == (n, widths[name])
         assert f.descriptors.dtype == (np.uint8 if name == "orb" else np.float32)
         assert f.binary == (name == "orb")
@@ -67,7 +68,7 @@ def test_outputs_follow_the_contract(extracted: dict, name: str) -> None:
 @pytest.mark.parametrize("name", ["orb", "sift", "r2d2", "superpoint"])
 def test_rust_reads_the_extractor_outputs_in_place(extracted: dict, name: str) -> None:
     left, _ = extracted[name]
-    for array in (left.keypoints, left.scores, left.descriptors):
+    for array in (left.keypoints, left.scores, left.descriptors, left.sigmas):
         assert array.flags.c_contiguous
         assert _core._buffer_address(array) == array.__array_interface__["data"][0]
     assert _core._buffer_address(left.descriptors) == left.descriptors.__array_interface__["data"][0]
@@ -166,6 +167,53 @@ def test_bad_images_and_arguments_are_named() -> None:
         features.Features(np.zeros((3, 2)), np.zeros(3, np.float32), np.zeros((3, 8), np.float32))
     with pytest.raises(InputError, match="descriptors"):
         features.Features(np.zeros((3, 2), np.float32), np.zeros(3, np.float32), np.zeros((2, 8), np.float32))
+
+
+def test_orb_sigmas_are_the_scale_factor_to_the_octave() -> None:
+    extractor = features.load("orb", max_keypoints=500)
+    image = _camera(480, 360)
+    f = extractor.extract_one(image)
+    # The octave of each keypoint straight from OpenCV, found again by position and score
+    # (one corner may be detected at two levels).
+    raw = cv2.ORB_create(nfeatures=500).detect(image, None)
+    octave = {(*np.float32(k.pt).tolist(), float(np.float32(k.response))): k.octave for k in raw}
+    found = zip(f.keypoints.tolist(), f.scores.tolist(), strict=True)
+    expected = [1.2 ** octave[(x, y, r)] for (x, y), r in found]
+    np.testing.assert_allclose(f.sigmas, expected, rtol=1e-6)
+    assert len(np.unique(f.sigmas)) >= 3, "keypoints from several pyramid levels"
+
+
+def test_sift_r2d2_and_superpoint_sigmas_follow_their_detection_scale(extracted: dict) -> None:
+    for f in extracted["sift"]:
+        exponent = np.log2(f.sigmas)
+        np.testing.assert_allclose(exponent, np.round(exponent), atol=1e-6)
+    # The 240×180 test image runs R2D2 at scales 1 and 0.75: σ 1 and 4/3 px, both present.
+    for f in extracted["r2d2"]:
+        np.testing.assert_allclose(np.unique(f.sigmas), [1.0, 4.0 / 3.0], rtol=1e-3)
+    for f in extracted["superpoint"]:
+        assert (f.sigmas == 1.0).all()
+
+
+def test_bad_sigmas_are_refused_naming_the_field() -> None:
+    kp, sc, de = np.zeros((3, 2), np.float32), np.zeros(3, np.float32), np.zeros((3, 8), np.float32)
+    assert (features.Features(kp, sc, de).sigmas == 1.0).all()
+    ok = features.Features(kp, sc, de, np.array([1.0, 1.2, 1.44], np.float32))
+    assert ok.sigmas.tolist() == pytest.approx([1.0, 1.2, 1.44])
+    for bad in (
+        np.ones(2, np.float32),  # wrong length
+        np.ones((3, 1), np.float32),  # wrong shape
+        np.ones(3, np.float64),  # wrong dtype
+        np.array([1.0, 0.0, 1.0], np.float32),
+        np.array([1.0, -2.0, 1.0], np.float32),
+        np.array([1.0, np.nan, 1.0], np.float32),
+        np.array([1.0, np.inf, 1.0], np.float32),
+        [1.0, 1.0, 1.0],
+    ):
+        with pytest.raises(InputError, match="sigmas") as info:
+            features.Features(kp, sc, de, bad)  # type: ignore[arg-type]
+        assert info.value.field == "sigmas"
+    with pytest.raises(InputError, match="C-contiguous"):
+        features.Features(kp, sc, de, np.ones(6, np.float32)[::2])
 
 
 def test_device_auto_and_threads() -> None:

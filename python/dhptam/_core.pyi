@@ -403,6 +403,8 @@ class PySystem:
         left_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
         right_keypoints: npt.NDArray[np.float32],
         right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+        left_sigmas: npt.NDArray[np.float32] | None = None,
+        sigma_scale: float = 1.0,
     ) -> tuple[_FloatArray, str, int, bool]: ...
     # Predicted (untracked) frames across illumination floods (issue 8, accuracy).
     def predict(self, t_ns: int) -> tuple[_FloatArray, str, int, bool]: ...
@@ -418,6 +420,10 @@ class PySystem:
         other_left_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
         other_right_keypoints: npt.NDArray[np.float32],
         other_right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
+        left_sigmas: npt.NDArray[np.float32] | None = None,
+        other_left_sigmas: npt.NDArray[np.float32] | None = None,
+        sigma_scale: float = 1.0,
+        other_sigma_scale: float = 1.0,
     ) -> tuple[int, int, int] | None: ...
     def tracking_totals(self) -> dict[str, int]: ...
     def tracked_depth(self) -> float | None: ...

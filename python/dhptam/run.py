@@ -615,6 +615,7 @@ def _track_all(
             _track_frames(
                 extracted, system, outputs, states, realtime, bar, sink, interrupt_pending,
                 frontend.flood_predict, feed,
+                float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"]),
             )  # fmt: skip
         finally:
             feed.close()
@@ -634,16 +635,23 @@ def _track_frames(
     interrupt_pending: Callable[[], bool],
     flood_predict: bool = False,
     feed: _DepthFeed | None = None,
+    dvs_sigma_scale: float = 1.0,
 ) -> None:
     """The tracking loop on the caller's thread: one frame tracked and recorded per step; a
     Ctrl-C takes effect between frames, so the trajectory and ``frames.csv`` hold the same
     frames. With ``flood_predict`` a flood frame's pose is predicted by the motion model
     (``System.predict``) instead of tracked, and the last clean frame stays the one a bridge
     keyframe may start from. After each frame the median depth of the map points it was
-    tracked with goes to ``feed`` (the next frame's warp depth)."""
+    tracked with goes to ``feed`` (the next frame's warp depth). The keypoint σ of DVS-biased
+    images are multiplied by ``dvs_sigma_scale`` (``[tracking]``)."""
     wall0 = time.perf_counter()
     t_first: int | None = None
-    last: tuple[int, Any] | None = None  # (frame index, (left, right) features it was tracked with)
+    # (frame index, (left, right) features it was tracked with, their σ factor)
+    last: tuple[int, Any, float] | None = None
+
+    def scale(bias: str) -> float:
+        return dvs_sigma_scale if bias == "dvs" else 1.0
+
     for frame, t_front, left, right, t_extract, bridge in extracted:
         if interrupt_pending():
             raise KeyboardInterrupt
@@ -658,8 +666,8 @@ def _track_frames(
         if frame.flood and flood_predict:
             r, bridged = system.predict(frame.t_ns), "none"
         else:
-            r, bridged = _track_bridged(system, frame, (left, right), bridge, last)
-            last = (frame.index, (left, right))
+            r, bridged = _track_bridged(system, frame, (left, right), bridge, last, scale)
+            last = (frame.index, (left, right), scale(frame.bias))
         t_track = time.perf_counter() - t0
         if feed is not None:
             feed.publish(frame.index, system.tracked_depth())
@@ -726,7 +734,8 @@ def _track_bridged(
     frame: Any,
     features: tuple[Any, Any],
     bridge: Any,
-    last: tuple[int, Any] | None,
+    last: tuple[int, Any, float] | None,
+    scale: Callable[[str], float] = lambda bias: 1.0,
 ) -> tuple[Any, str]:
     """Tracks one frame, inserting a bridge keyframe at a fusion-mode switch.
 
@@ -735,18 +744,21 @@ def _track_bridged(
     ``last``'s features): the bridge keyframe goes in at that frame's pose before this frame
     is tracked. Leaving one it renders this frame in the previous frames' mode: the frame is
     tracked with that rendering (it matches the map) and the bridge keyframe adds its own
-    image. Returns the track result and ``none``, ``inserted`` or ``refused``.
+    image. ``scale`` gives the keypoint σ factor of an image from its fusion bias. Returns the
+    track result and ``none``, ``inserted`` or ``refused``.
     """
+    here = scale(frame.bias)
     if bridge is None:
-        return system.track(frame.t_ns, *features), "none"
+        return system.track(frame.t_ns, *features, sigma_scale=here), "none"
     images, other = bridge
+    there = scale(images.bias)
     if images.index < frame.index and last is not None and last[0] == images.index:
-        b = system.bridge(images.t_ns, last[1], other)
-        return system.track(frame.t_ns, *features), "refused" if b is None else "inserted"
+        b = system.bridge(images.t_ns, last[1], other, sigma_scales=(last[2], there))
+        return system.track(frame.t_ns, *features, sigma_scale=here), "refused" if b is None else "inserted"
     if images.index == frame.index:
-        r = system.track(frame.t_ns, *other)
+        r = system.track(frame.t_ns, *other, sigma_scale=there)
         if r.state == "lost":
             return r, "refused"
-        b = system.bridge(frame.t_ns, other, features)
+        b = system.bridge(frame.t_ns, other, features, sigma_scales=(there, here))
         return r, "refused" if b is None else "inserted"
-    return system.track(frame.t_ns, *features), "none"
+    return system.track(frame.t_ns, *features, sigma_scale=here), "none"

@@ -3,7 +3,9 @@
 Input per frame: features of the RECTIFIED left and right images (pinhole, no distortion,
 the right camera at +baseline along the left x axis), as produced by ``dhptam.features``:
 anything with ``.keypoints`` ((N, 2) float32, x = column, y = row) and ``.descriptors``
-((N, D) float32 unit rows or (N, B) uint8) arrays. Both are read in place by the Rust core,
+((N, D) float32 unit rows or (N, B) uint8) arrays, and optionally ``.sigmas`` ((N,) float32,
+each keypoint's location noise in pixels; the left image's weigh its residuals by 1/σ with
+``[tracking] keypoint_sigma = "octave"``). All are read in place by the Rust core,
 which tracks with the GIL released; mapping runs on its own thread unless ``threaded=False``
 (then inline and deterministic). Poses are ``world_from_cam`` 4×4 matrices of the rectified
 left camera; the world frame is the first keyframe's camera frame.
@@ -32,6 +34,11 @@ class FeatureSet(Protocol):
 
     @property
     def descriptors(self) -> NDArray[np.float32] | NDArray[np.uint8]: ...
+
+
+def _sigmas(features: FeatureSet) -> NDArray[np.float32] | None:
+    """The features' per-keypoint σ, or ``None`` (1 px each) when they carry none."""
+    return getattr(features, "sigmas", None)
 
 
 @dataclass(frozen=True)
@@ -94,11 +101,20 @@ class System:
         self.calibration = calibration
         self._core = _core.PySystem(c.fx, c.fy, c.cx, c.cy, c.baseline_m, c.width, c.height, config, threaded)
 
-    def track(self, t_ns: int, left: FeatureSet, right: FeatureSet) -> TrackResult:
-        """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds."""
+    def track(self, t_ns: int, left: FeatureSet, right: FeatureSet, sigma_scale: float = 1.0) -> TrackResult:
+        """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds; ``sigma_scale``
+        multiplies every keypoint σ of the frame (e.g. an event-dominated image)."""
         return _track_result(
             t_ns,
-            self._core.track(int(t_ns), left.keypoints, left.descriptors, right.keypoints, right.descriptors),
+            self._core.track(
+                int(t_ns),
+                left.keypoints,
+                left.descriptors,
+                right.keypoints,
+                right.descriptors,
+                _sigmas(left),
+                float(sigma_scale),
+            ),
         )
 
     def predict(self, t_ns: int) -> TrackResult:
@@ -116,6 +132,7 @@ class System:
         t_ns: int,
         primary: tuple[FeatureSet, FeatureSet],
         other: tuple[FeatureSet, FeatureSet],
+        sigma_scales: tuple[float, float] = (1.0, 1.0),
     ) -> BridgeResult | None:
         """Inserts a bridge keyframe at the last tracked frame (taken at ``t_ns``) across a
         change of image appearance, e.g. the fusion switching between frame- and
@@ -128,12 +145,14 @@ class System:
         map points and adds the other image's stereo points, so the next frames, which look
         like ``other``, track against it and the map stays one piece. ``None`` when refused:
         the last frame is not at ``t_ns``, was lost, or too few primary features matched.
+        ``sigma_scales`` multiply the keypoint σ of ``primary`` and ``other``.
         """
         (pl, pr), (ol, orr) = primary, other
         r = self._core.bridge(
             int(t_ns),
             pl.keypoints, pl.descriptors, pr.keypoints, pr.descriptors,
             ol.keypoints, ol.descriptors, orr.keypoints, orr.descriptors,
+            _sigmas(pl), _sigmas(ol), float(sigma_scales[0]), float(sigma_scales[1]),
         )  # fmt: skip
         if r is None:
             return None

@@ -29,10 +29,14 @@ fn track(system: &mut System, f: &SyntheticFrame) {
     let left = FrameFeatures {
         keypoints: &f.left.keypoints,
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
+        sigmas: None,
+        sigma_scale: 1.0,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
         descriptors: Descriptors::float(&f.right.descriptors, 32).unwrap(),
+        sigmas: None,
+        sigma_scale: 1.0,
     };
     system.track(f.t_ns, left, right).unwrap();
 }
@@ -93,6 +97,7 @@ fn track_bench(c: &mut Criterion, fuse: bool) {
                     t_ns: f.t_ns,
                     keypoints: lxy.clone(),
                     u_right,
+                    sigmas: vec![1.0; lxy.len()],
                     descriptors: ld,
                 };
                 let t = track_local_map(map, &state, &frame, &ctx, predicted).unwrap();

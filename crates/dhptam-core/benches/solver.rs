@@ -186,6 +186,7 @@ fn stereo_window() -> (
                 point: j,
                 pixel: Vector2::new(k.fx * p.x / p.z + k.cx + e(), k.fy * p.y / p.z + k.cy + e()),
                 u_right: (s != 4).then(|| k.fx * (p.x - k.baseline) / p.z + k.cx + e()),
+                sigma: 1.0,
             });
         }
     }

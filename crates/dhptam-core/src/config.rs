@@ -330,6 +330,19 @@ config_section! {
         /// Huber scale and outlier bound of the refinement, pixels (√7.815: the 95 % χ²
         /// bound of a 3-dof stereo residual at σ = 1 px).
         huber_px: f64 = 2.795,
+        /// Measurement noise σ of each keypoint in the motion-only refinement, the local
+        /// bundle adjustment and their outlier bounds (residuals whitened by 1/σ, so the
+        /// Huber scale and outlier bound above, stated for σ = 1 px, widen by σ):
+        /// "octave" takes the extractor's per-keypoint σ (ORB: 1.2^octave, SIFT: 2^octave,
+        /// R2D2: the inverse of its pyramid scale; 1 for single-scale extractors); "unit"
+        /// gives every keypoint σ = 1 px. Default "unit": with ORB, "octave" was not more
+        /// accurate across the simulator's sequences (docs/BENCHMARKS.md, "per-keypoint σ").
+        keypoint_sigma: String = "unit".to_owned(),
+        /// Factor on the keypoint σ of frames whose fusion is DVS-biased (event-dominated
+        /// images locate corners less precisely than frames), with either `keypoint_sigma`
+        /// ("unit": σ = this factor on those frames); applied by the Python front-end
+        /// (`dhptam.run`). 1 (default: 1.4 did not help on the HDR demo) leaves σ as it is.
+        dvs_sigma_scale: f64 = 1.0,
     }
 }
 
@@ -462,9 +475,16 @@ impl TrackingConfig {
             ("tracking.radius_px", self.radius_px),
             ("tracking.wide_radius_px", self.wide_radius_px),
             ("tracking.huber_px", self.huber_px),
+            ("tracking.dvs_sigma_scale", self.dvs_sigma_scale),
         ] {
             check(key, v.is_finite() && v > 0.0, "a positive number", v)?;
         }
+        check(
+            "tracking.keypoint_sigma",
+            ["octave", "unit"].contains(&self.keypoint_sigma.as_str()),
+            "\"octave\" or \"unit\"",
+            format!("{:?}", self.keypoint_sigma),
+        )?;
         check(
             "tracking.ratio",
             self.ratio > 0.0 && self.ratio <= 1.0,

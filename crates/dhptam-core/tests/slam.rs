@@ -152,6 +152,8 @@ fn threaded_stress_and_prompt_shutdown() {
     let left = FrameFeatures {
         keypoints: &f.left.keypoints,
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
+        sigmas: None,
+        sigma_scale: 1.0,
     };
     assert!(system.track(f.t_ns, left, left).is_err());
 }
@@ -260,6 +262,7 @@ fn insert_frame(map: &mut Map, f: &SyntheticFrame, world_from_cam: Se3, mono: &[
     }
     let frame = StereoFrame {
         t_ns: f.t_ns,
+        sigmas: vec![1.0; lxy.len()],
         keypoints: lxy,
         u_right,
         descriptors: ld,
@@ -602,10 +605,14 @@ fn features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
         FrameFeatures {
             keypoints: &f.left.keypoints,
             descriptors: Descriptors::float(&f.left.descriptors, dim).unwrap(),
+            sigmas: None,
+            sigma_scale: 1.0,
         },
         FrameFeatures {
             keypoints: &f.right.keypoints,
             descriptors: Descriptors::float(&f.right.descriptors, dim).unwrap(),
+            sigmas: None,
+            sigma_scale: 1.0,
         },
     )
 }

@@ -1,11 +1,14 @@
 //! Motion-only pose refinement: the stereo and monocular residual Jacobians against central
 //! finite differences, recovery of the true pose from a perturbed start, and 20 % gross
-//! outliers down-weighted by the Huber loss and flagged in the inlier statistics.
+//! outliers down-weighted by the Huber loss and flagged in the inlier statistics; per-observation
+//! σ: conflicting observations pull the pose in proportion to 1/σ², the outlier bound widens
+//! with σ, bad σ are refused.
 
 use dhptam_core::geometry::Se3;
 use dhptam_core::solver::pose::pose_residual;
 use dhptam_core::solver::{
-    refine_pose, LmOptions, Loss, PoseObservation, PoseOptions, StereoIntrinsics,
+    refine_pose, refine_pose_weighted, LmOptions, Loss, PoseObservation, PoseOptions,
+    StereoIntrinsics,
 };
 use nalgebra::{Vector2, Vector3, Vector6};
 use rand::{Rng, SeedableRng};
@@ -169,4 +172,96 @@ fn huber_refinement_survives_20_percent_outliers() {
     // The inlier flags at the Tukey result are exactly the uncorrupted observations.
     let flagged: Vec<bool> = tukey.inliers.iter().map(|&i| !i).collect();
     assert_eq!(flagged, corrupted);
+}
+
+/// Distance between two poses on SE(3) (norm of the tangent of a · b⁻¹).
+fn distance(a: &Se3, b: &Se3) -> f64 {
+    (*a * b.inverse()).log().norm()
+}
+
+#[test]
+fn observations_with_larger_sigma_pull_the_pose_less() {
+    // Two sets of observations that disagree: one consistent with `precise` (σ = 1 px), the
+    // other with `vague`, 5 cm and 0.6° away (σ = 4 px). Weighted least squares puts the
+    // estimate about 1/(1 + 16) of the way from `precise` to `vague`; with equal σ it would
+    // sit about halfway.
+    let precise = truth();
+    let vague = Se3::exp(&Vector6::new(0.04, -0.03, 0.0, 0.01, 0.0, 0.0)) * precise;
+    let separation = distance(&precise, &vague);
+    let mut obs = scene(60, 11, &precise);
+    obs.extend(scene(60, 12, &vague));
+    let options = PoseOptions {
+        loss: Loss::Trivial,
+        outlier_threshold_sq: f64::INFINITY,
+        lm: LmOptions {
+            max_iterations: 50,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    let solve = |sigma_precise: f64, sigma_vague: f64| {
+        let mut sigmas = vec![sigma_precise; 60];
+        sigmas.extend(vec![sigma_vague; 60]);
+        refine_pose_weighted(precise, &K, &obs, &sigmas, &options)
+            .unwrap()
+            .cam_from_world
+    };
+    let weighted = solve(1.0, 4.0);
+    assert!(
+        distance(&weighted, &precise) < 0.15 * separation,
+        "σ 1 vs 4 px: {} from the precise pose, {} from the vague one",
+        distance(&weighted, &precise),
+        distance(&weighted, &vague)
+    );
+    // The same with the roles swapped: the estimate follows whichever set is precise.
+    let swapped = solve(4.0, 1.0);
+    assert!(distance(&swapped, &vague) < 0.15 * separation);
+    // Equal σ (any common value): between the two, near neither.
+    for sigma in [1.0, 4.0] {
+        let equal = solve(sigma, sigma);
+        assert!(distance(&equal, &precise) > 0.25 * separation);
+        assert!(distance(&equal, &vague) > 0.25 * separation);
+    }
+    // Unit σ is `refine_pose`.
+    let unit = refine_pose(precise, &K, &obs, &options)
+        .unwrap()
+        .cam_from_world;
+    assert!(distance(&unit, &solve(1.0, 1.0)) < 1e-9);
+}
+
+#[test]
+fn outlier_bound_widens_with_sigma() {
+    // One observation 4 px off in u: 16 px² exceeds the 7.815 bound at σ = 1 px but its
+    // whitened 16/4 = 4 lies inside at σ = 2 px.
+    let pose = truth();
+    let mut obs = scene(40, 3, &pose);
+    if let PoseObservation::Stereo { pixel, .. } = &mut obs[0] {
+        pixel.x += 4.0;
+    } else {
+        panic!("observation 0 is stereo");
+    }
+    let options = PoseOptions::default();
+    let mut sigmas = vec![1.0; obs.len()];
+    let r = refine_pose_weighted(pose, &K, &obs, &sigmas, &options).unwrap();
+    assert!(!r.inliers[0]);
+    assert_eq!(r.inlier_count, obs.len() - 1);
+    sigmas[0] = 2.0;
+    let r = refine_pose_weighted(pose, &K, &obs, &sigmas, &options).unwrap();
+    assert!(r.inliers[0]);
+    assert_eq!(r.inlier_count, obs.len());
+}
+
+#[test]
+fn bad_sigmas_are_refused() {
+    let pose = truth();
+    let obs = scene(10, 4, &pose);
+    let options = PoseOptions::default();
+    let short = vec![1.0; obs.len() - 1];
+    assert!(refine_pose_weighted(pose, &K, &obs, &short, &options).is_err());
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+        let mut sigmas = vec![1.0; obs.len()];
+        sigmas[3] = bad;
+        let e = refine_pose_weighted(pose, &K, &obs, &sigmas, &options).unwrap_err();
+        assert!(e.to_string().contains("sigmas[3]"), "{e}");
+    }
 }

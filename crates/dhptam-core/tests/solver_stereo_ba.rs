@@ -84,6 +84,7 @@ fn window(n_kf: usize, n_pt: usize, sigma: f64, seed: u64) -> Window {
                 point: j,
                 pixel,
                 u_right,
+                sigma: 1.0,
             });
         }
     }

@@ -1,5 +1,5 @@
-//! `PySystem`: the SLAM back-end. Keypoints ((N, 2) float32) and descriptors ((N, D) float32 or
-//! (N, B) uint8) are read in place; tracking, saving and loading run with the GIL released.
+//! `PySystem`: the SLAM back-end. Keypoints ((N, 2) float32), descriptors ((N, D) float32 or
+//! (N, B) uint8) and the optional left keypoints' σ ((N,) float32) are read in place; tracking, saving and loading run with the GIL released.
 //! The system sits behind a mutex so that `shutdown` may come from another Python thread while
 //! a `track` call is running (it waits for that frame).
 
@@ -9,7 +9,10 @@ use std::sync::Mutex;
 use dhptam_core::geometry::Se3;
 use dhptam_core::slam::{FrameFeatures, StereoCalibration, System, TrackResult};
 use numpy::ndarray::{Array1, Array3};
-use numpy::{IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray2, PyUntypedArrayMethods};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
+    PyUntypedArrayMethods,
+};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -29,16 +32,36 @@ fn keypoints<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArr
     Ok(a)
 }
 
+/// Optional per-keypoint σ: an (N,) float32 array read in place (others converted once).
+fn sigmas<'py>(
+    obj: Option<&Bound<'py, PyAny>>,
+    name: &str,
+) -> PyResult<Option<PyReadonlyArray1<'py, f32>>> {
+    match obj {
+        Some(o) if !o.is_none() => crate::arrays::values_f32(o, name).map(Some),
+        _ => Ok(None),
+    }
+}
+
 /// One image's features read in place from checked arrays.
 fn features<'a>(
     keypoints: &'a PyReadonlyArray2<'_, f32>,
     descriptors: &'a DescriptorArray<'_>,
+    sigmas: Option<&'a PyReadonlyArray1<'_, f32>>,
+    sigma_scale: f32,
 ) -> PyResult<FrameFeatures<'a>> {
     Ok(FrameFeatures {
         keypoints: keypoints
             .as_slice()
             .map_err(|_| input_error("keypoints", "a C-contiguous array", "a strided view"))?,
         descriptors: descriptors.view()?,
+        sigmas: sigmas
+            .map(|s| {
+                s.as_slice()
+                    .map_err(|_| input_error("sigmas", "a C-contiguous array", "a strided view"))
+            })
+            .transpose()?,
+        sigma_scale,
     })
 }
 
@@ -119,6 +142,13 @@ impl PySystem {
     }
 
     /// Tracks one frame; returns (pose (4, 4) world_from_cam, state, inliers, keyframe).
+    /// `left_sigmas`: the left keypoints' σ in pixels (None: 1 each); `sigma_scale`: a
+    /// factor on all of them (e.g. an event-dominated image).
+    #[pyo3(signature = (
+        t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
+        left_sigmas=None, sigma_scale=1.0
+    ))]
+    #[allow(clippy::too_many_arguments)]
     fn track<'py>(
         &self,
         py: Python<'py>,
@@ -127,12 +157,16 @@ impl PySystem {
         left_descriptors: &Bound<'py, PyAny>,
         right_keypoints: &Bound<'py, PyAny>,
         right_descriptors: &Bound<'py, PyAny>,
+        left_sigmas: Option<&Bound<'py, PyAny>>,
+        sigma_scale: f32,
     ) -> PyResult<TrackTuple<'py>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
-        let (left, right) = (features(&lk, &ld)?, features(&rk, &rd)?);
+        let ls = sigmas(left_sigmas, "left.sigmas")?;
+        let left = features(&lk, &ld, ls.as_ref(), sigma_scale)?;
+        let right = features(&rk, &rd, None, sigma_scale)?;
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
@@ -150,8 +184,15 @@ impl PySystem {
 
     /// Bridge keyframe at the last tracked frame `t_ns` (see `dhptam.System.bridge`):
     /// `primary` features are the image that frame was tracked with, `other` the same data
-    /// rendered the other way. Returns (keyframe id, re-matched map points, points from the
-    /// other image), or None when refused.
+    /// rendered the other way; `left_sigmas`/`other_left_sigmas` their left keypoints' σ
+    /// (None: 1 each), `sigma_scale`/`other_sigma_scale` factors on them. Returns (keyframe id, re-matched map points, points from the other
+    /// image), or None when refused.
+    #[pyo3(signature = (
+        t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
+        other_left_keypoints, other_left_descriptors, other_right_keypoints,
+        other_right_descriptors, left_sigmas=None, other_left_sigmas=None, sigma_scale=1.0,
+        other_sigma_scale=1.0
+    ))]
     #[allow(clippy::too_many_arguments)]
     fn bridge<'py>(
         &self,
@@ -165,6 +206,10 @@ impl PySystem {
         other_left_descriptors: &Bound<'py, PyAny>,
         other_right_keypoints: &Bound<'py, PyAny>,
         other_right_descriptors: &Bound<'py, PyAny>,
+        left_sigmas: Option<&Bound<'py, PyAny>>,
+        other_left_sigmas: Option<&Bound<'py, PyAny>>,
+        sigma_scale: f32,
+        other_sigma_scale: f32,
     ) -> PyResult<Option<(u64, usize, usize)>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
@@ -174,8 +219,16 @@ impl PySystem {
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
         let old = DescriptorArray::extract(other_left_descriptors, "other_left.descriptors")?;
         let ord = DescriptorArray::extract(other_right_descriptors, "other_right.descriptors")?;
-        let primary = (features(&lk, &ld)?, features(&rk, &rd)?);
-        let other = (features(&olk, &old)?, features(&ork, &ord)?);
+        let ls = sigmas(left_sigmas, "left.sigmas")?;
+        let ols = sigmas(other_left_sigmas, "other_left.sigmas")?;
+        let primary = (
+            features(&lk, &ld, ls.as_ref(), sigma_scale)?,
+            features(&rk, &rd, None, sigma_scale)?,
+        );
+        let other = (
+            features(&olk, &old, ols.as_ref(), other_sigma_scale)?,
+            features(&ork, &ord, None, other_sigma_scale)?,
+        );
         let b = py
             .detach_guarded("slam::bridge", || {
                 self.with(|s| s.bridge(t_ns, primary, other))

@@ -44,14 +44,22 @@ class Features:
     descriptors
         (N, D) float32 with unit-norm rows (L2 distances in [0, 2]), or (N, 32) uint8 for
         binary ORB descriptors (Hamming distance).
+    sigmas
+        (N,) float32, finite and positive: each keypoint's location noise σ in pixels, from
+        the scale it was detected at (ORB: 1.2^octave, SIFT: 2^octave, R2D2: 1 / pyramid
+        scale). The back-end weighs its reprojection residuals by 1/σ (``[tracking]
+        keypoint_sigma``). ``None`` at construction (an extractor without scale information)
+        gives 1 for every keypoint.
 
     Every array is C-contiguous with exactly these dtypes, so the Rust core reads them in
-    place. Construction checks shapes and dtypes and raises :class:`~dhptam.errors.InputError`.
+    place. Construction checks shapes, dtypes and values and raises
+    :class:`~dhptam.errors.InputError` naming the field.
     """
 
     keypoints: npt.NDArray[np.float32]
     scores: npt.NDArray[np.float32]
     descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8]
+    sigmas: npt.NDArray[np.float32] = None  # type: ignore[assignment]  # None → ones
 
     def __post_init__(self) -> None:
         kp, sc, de = self.keypoints, self.scores, self.descriptors
@@ -73,7 +81,19 @@ class Features:
                 f"descriptors: expected an ({n}, D) float32 or uint8 array, got {_describe(de)}",
                 field="descriptors",
             )
-        for name, array in (("keypoints", kp), ("scores", sc), ("descriptors", de)):
+        si = self.sigmas
+        if si is None:
+            si = np.ones(n, np.float32)
+            object.__setattr__(self, "sigmas", si)
+        if not (isinstance(si, np.ndarray) and si.dtype == np.float32 and si.shape == (n,)):
+            raise InputError(f"sigmas: expected a ({n},) float32 array, got {_describe(si)}", field="sigmas")
+        bad = ~(np.isfinite(si) & (si > 0))
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise InputError(
+                f"sigmas: expected finite positive pixels, got {si[i]} at keypoint {i}", field="sigmas"
+            )
+        for name, array in (("keypoints", kp), ("scores", sc), ("descriptors", de), ("sigmas", si)):
             if not array.flags.c_contiguous:
                 raise InputError(f"{name}: expected a C-contiguous array", field=name)
 
@@ -267,10 +287,19 @@ class TorchExtractor(Extractor):
         return f"{type(self).__name__}(max_keypoints={self.max_keypoints}, device={self.device})"
 
 
-def to_features(keypoints: torch.Tensor, scores: torch.Tensor, descriptors: torch.Tensor) -> Features:
-    """Features from torch tensors on any device, as float32 C-contiguous numpy arrays."""
+def to_features(
+    keypoints: torch.Tensor,
+    scores: torch.Tensor,
+    descriptors: torch.Tensor,
+    sigmas: torch.Tensor | None = None,
+) -> Features:
+    """Features from torch tensors on any device, as float32 C-contiguous numpy arrays
+    (``sigmas`` ``None``: 1 px each)."""
     kp, sc, de = (t.detach().float().cpu().contiguous().numpy() for t in (keypoints, scores, descriptors))
-    return Features(np.ascontiguousarray(kp), np.ascontiguousarray(sc), np.ascontiguousarray(de))
+    arrays = (np.ascontiguousarray(kp), np.ascontiguousarray(sc), np.ascontiguousarray(de))
+    if sigmas is None:
+        return Features(*arrays)
+    return Features(*arrays, np.ascontiguousarray(sigmas.detach().float().cpu().numpy()))
 
 
 def refine_subpixel(

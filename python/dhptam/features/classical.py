@@ -7,8 +7,11 @@
 
 Keypoints come from OpenCV with sub-pixel positions (SIFT interpolates its extrema; ORB's
 positions at coarser pyramid levels are scaled back), already in the pixel-centre convention
-used by dhptam. At most ``max_keypoints`` are kept, best score first. The two images of a stereo
-pair are processed one after the other (OpenCV parallelises inside each call).
+used by dhptam. Each keypoint's location noise ``sigmas`` is the pixel size of the pyramid
+level it was found at: ORB ``1.2^octave``, SIFT ``2^octave`` (octave −1, the doubled image,
+counted as 1 px: upsampling adds no information). At most ``max_keypoints`` are kept, best
+score first. The two images of a stereo pair are processed one after the other (OpenCV
+parallelises inside each call).
 """
 
 from __future__ import annotations
@@ -44,6 +47,10 @@ class _OpenCVExtractor(Extractor):
     def _descriptors(self, raw: npt.NDArray[Any]) -> npt.NDArray[Any]:
         return raw
 
+    @abc.abstractmethod
+    def _sigmas(self, keypoints: Any) -> npt.NDArray[np.float32]:
+        """Location noise (pixels) of OpenCV keypoints, from the pyramid level of each."""
+
     def _extract_single(self, image: npt.NDArray[np.uint8]) -> Features:
         keypoints, raw = self._detector.detectAndCompute(image, None)
         if raw is None or len(keypoints) == 0:
@@ -52,7 +59,13 @@ class _OpenCVExtractor(Extractor):
         scores = np.array([kp.response for kp in keypoints], dtype=np.float32)
         order = np.argsort(-scores, kind="stable")[: self.max_keypoints]
         descriptors = self._descriptors(raw[order])
-        return Features(np.ascontiguousarray(xy[order]), np.ascontiguousarray(scores[order]), descriptors)
+        sigmas = self._sigmas(keypoints)[order]
+        return Features(
+            np.ascontiguousarray(xy[order]),
+            np.ascontiguousarray(scores[order]),
+            descriptors,
+            np.ascontiguousarray(sigmas),
+        )
 
     def _extract_pair(
         self, left: npt.NDArray[np.uint8], right: npt.NDArray[np.uint8]
@@ -79,10 +92,20 @@ class ORB(_OpenCVExtractor):
         self.levels = int(levels)
         super().__init__(max_keypoints, threads)
 
+    #: Ratio between ORB's pyramid levels (OpenCV's default, used at creation).
+    scale_factor = 1.2
+
     def _create(self) -> Any:
         return cv2.ORB_create(
-            nfeatures=self.max_keypoints, nlevels=self.levels, fastThreshold=self.fast_threshold
+            nfeatures=self.max_keypoints,
+            scaleFactor=self.scale_factor,
+            nlevels=self.levels,
+            fastThreshold=self.fast_threshold,
         )
+
+    def _sigmas(self, keypoints: Any) -> npt.NDArray[np.float32]:
+        octave = np.array([kp.octave for kp in keypoints], dtype=np.float32)
+        return np.power(np.float32(self.scale_factor), octave).astype(np.float32)
 
     def _descriptors(self, raw: npt.NDArray[Any]) -> npt.NDArray[np.uint8]:
         return np.ascontiguousarray(raw, dtype=np.uint8)
@@ -102,6 +125,12 @@ class SIFT(_OpenCVExtractor):
 
     def _create(self) -> Any:
         return cv2.SIFT_create(nfeatures=self.max_keypoints, contrastThreshold=self.contrast_threshold)
+
+    def _sigmas(self, keypoints: Any) -> npt.NDArray[np.float32]:
+        # OpenCV packs the octave into the low byte as a signed number (−1: doubled image).
+        octave = np.array([kp.octave & 255 for kp in keypoints], dtype=np.int32)
+        octave = np.where(octave >= 128, octave - 256, octave)
+        return np.power(np.float32(2.0), np.maximum(octave, 0)).astype(np.float32)
 
     def _descriptors(self, raw: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
         d = np.asarray(raw, dtype=np.float32)

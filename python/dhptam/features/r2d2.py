@@ -458,6 +458,7 @@ class R2D2(TorchExtractor):
         scores: list[torch.Tensor] = []
         descs: list[torch.Tensor] = []
         owner: list[torch.Tensor] = []
+        sigmas: list[torch.Tensor] = []
         for scale in self.scales_for(height, width):
             # The fast variant pools by 2 and upsamples back: keep sizes even so the maps
             # have exactly the scaled image's size.
@@ -484,14 +485,18 @@ class R2D2(TorchExtractor):
             scores.append(rel[b, 0, y, x] * rep[b, 0, y, x])
             descs.append(F.normalize(_sample_upsampled(low, b, y, x, m), p=2, dim=1))
             owner.append(b)
-        all_xy, all_scores, all_desc, all_owner = (torch.cat(t) for t in (xy, scores, descs, owner))
+            # A keypoint of the scaled image is located to one of its pixels: width / w of ours.
+            sigmas.append(torch.full_like(kx, max(width / w, height / h)))
+        all_xy, all_scores, all_desc, all_owner, all_sigma = (
+            torch.cat(t) for t in (xy, scores, descs, owner, sigmas)
+        )
         keep = self._merge(all_xy, all_scores, all_owner, batch, height, width)
         out = []
         for i in range(batch):
             idx = keep[all_owner[keep] == i]
             order = torch.argsort(all_scores[idx], descending=True)[: self.max_keypoints]
             idx = idx[order]
-            out.append(to_features(all_xy[idx], all_scores[idx], all_desc[idx]))
+            out.append(to_features(all_xy[idx], all_scores[idx], all_desc[idx], all_sigma[idx]))
         return out
 
     def _heads(self, low: torch.Tensor, upsample: int) -> tuple[torch.Tensor, torch.Tensor]:

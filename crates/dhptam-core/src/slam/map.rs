@@ -24,6 +24,9 @@ pub struct Keyframe {
     pub keypoints: Vec<[f32; 2]>,
     /// Matched right-image column per keypoint, rectified pixels; NaN when unmatched.
     pub u_right: Vec<f32>,
+    /// Measurement noise σ per keypoint, pixels (1 for every keypoint with
+    /// `[tracking] keypoint_sigma = "unit"`); weighs its observations in bundle adjustment.
+    pub sigmas: Vec<f32>,
     /// Left descriptors, one row per keypoint.
     pub descriptors: OwnedDescriptors,
     /// Map point observed by each keypoint, if any.

@@ -103,6 +103,7 @@ pub fn local_mapping(
                     point: pi,
                     pixel: Vector2::new(kp[0] as f64, kp[1] as f64),
                     u_right: ur.is_finite().then_some(ur as f64),
+                    sigma: k.sigmas[feature as usize] as f64,
                 });
             }
         }

@@ -1,10 +1,12 @@
 //! Saving and loading a map with the tracker state: a little-endian binary file.
 //!
-//! Layout: the magic `DHPTAMAP`, a `u32` version (2), the calibration, the descriptor kind
-//! and width, the tracker state, the id counters, the keyframes, the map points, the loops,
-//! the trajectory and (since version 2) the first keyframes of unjoined map segments.
-//! Version-1 files (no segment list) are still read. Poses are stored as translation (3 × f64) and quaternion x-y-z-w
-//! (4 × f64) of `world_from_cam` / `kf_from_cam`. The file is written to `<path>.tmp` and
+//! Layout: the magic `DHPTAMAP`, a `u32` version (3), the calibration, the descriptor kind
+//! and width, the tracker state, the id counters, the keyframes (per keypoint x, y, u_right
+//! and, since version 3, its σ), the map points, the loops, the trajectory and (since
+//! version 2) the first keyframes of unjoined map segments. Version-1 files (no segment
+//! list) and version-2 files (no σ: 1 px each) are still read. Poses are stored as
+//! translation (3 × f64) and quaternion x-y-z-w (4 × f64) of `world_from_cam` /
+//! `kf_from_cam`. The file is written to `<path>.tmp` and
 //! renamed, so a crash never leaves a truncated map under the final name.
 
 use std::collections::BTreeMap;
@@ -21,7 +23,7 @@ use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors, OwnedDescriptors};
 
 const MAGIC: &[u8; 8] = b"DHPTAMAP";
-const VERSION: u32 = 2;
+const VERSION: u32 = 3;
 
 struct Writer(Vec<u8>);
 
@@ -208,10 +210,11 @@ pub(crate) fn save(
         w.i64(k.t_ns);
         w.se3(&k.world_from_cam);
         w.u64(k.keypoints.len() as u64);
-        for (p, ur) in k.keypoints.iter().zip(&k.u_right) {
+        for ((p, ur), sigma) in k.keypoints.iter().zip(&k.u_right).zip(&k.sigmas) {
             w.f32(p[0]);
             w.f32(p[1]);
             w.f32(*ur);
+            w.f32(*sigma);
         }
         w.descriptors(k.descriptors.view());
         for p in &k.points {
@@ -309,9 +312,9 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         return Err(r.corrupt("not a dhptam map (magic DHPTAMAP missing)"));
     }
     let version = r.u32()?;
-    if version != VERSION && version != 1 {
+    if !(1..=VERSION).contains(&version) {
         return Err(r.corrupt(&format!(
-            "map version {version}, this build reads {VERSION}"
+            "map version {version}, this build reads 1 to {VERSION}"
         )));
     }
     let calib = StereoCalibration {
@@ -363,9 +366,15 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         let world_from_cam = r.se3()?;
         let m = r.len("keypoint")?;
         let (mut keypoints, mut u_right) = (Vec::with_capacity(m), Vec::with_capacity(m));
+        let mut sigmas = Vec::with_capacity(m);
         for _ in 0..m {
             keypoints.push([r.f32()?, r.f32()?]);
             u_right.push(r.f32()?);
+            let sigma = if version >= 3 { r.f32()? } else { 1.0 };
+            if !(sigma.is_finite() && sigma > 0.0) {
+                return Err(r.corrupt(&format!("keyframe {id}: keypoint σ {sigma}")));
+            }
+            sigmas.push(sigma);
         }
         let descriptors = r.descriptors(kind, width)?;
         if descriptors.view().len() != m {
@@ -390,6 +399,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
                 world_from_cam,
                 keypoints,
                 u_right,
+                sigmas,
                 descriptors,
                 points,
                 covisible,

@@ -24,13 +24,21 @@ use crate::matching::{DescriptorKind, Descriptors};
 use crate::place::PlaceDatabase;
 
 /// One image's features: keypoints `(x, y)` row-major as `[x0, y0, x1, y1, …]` (rectified
-/// pixels) and one descriptor row per keypoint.
+/// pixels), one descriptor row per keypoint and optionally each keypoint's measurement noise.
 #[derive(Clone, Copy, Debug)]
 pub struct FrameFeatures<'a> {
     /// Keypoints, 2 numbers each.
     pub keypoints: &'a [f32],
     /// Descriptors, one row per keypoint.
     pub descriptors: Descriptors<'a>,
+    /// Measurement noise σ per keypoint, pixels (finite, positive), e.g. `1.2^octave` for
+    /// ORB; `None`: 1 px each. Only the left image's are used (a stereo match shares its
+    /// left keypoint's σ), and only with `[tracking] keypoint_sigma = "octave"`.
+    pub sigmas: Option<&'a [f32]>,
+    /// Factor on every keypoint σ of the image (finite, positive), with either
+    /// `keypoint_sigma`: images known to locate keypoints less precisely as a whole, e.g.
+    /// event-dominated fusion (`[tracking] dvs_sigma_scale`, applied by the Python front-end).
+    pub sigma_scale: f32,
 }
 
 /// Running statistics of one stage's wall time.
@@ -333,6 +341,29 @@ impl System {
                 f.keypoints[i],
             ));
         }
+        if !(f.sigma_scale.is_finite() && f.sigma_scale > 0.0) {
+            return Err(Error::invalid(
+                format!("{side}.sigma_scale"),
+                "a finite positive factor",
+                f.sigma_scale,
+            ));
+        }
+        if let Some(s) = f.sigmas {
+            if s.len() != n {
+                return Err(Error::invalid(
+                    format!("{side}.sigmas"),
+                    format!("{n} values, one per keypoint"),
+                    s.len(),
+                ));
+            }
+            if let Some(i) = s.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
+                return Err(Error::invalid(
+                    format!("{side}.sigmas[{i}]"),
+                    "a finite positive number of pixels",
+                    s[i],
+                ));
+            }
+        }
         let this = (f.descriptors.kind(), f.descriptors.width());
         match self.descriptor {
             Some(d) if d != this => {
@@ -369,10 +400,18 @@ impl System {
                 right.descriptors,
             )
         });
+        let scale = left.sigma_scale;
+        let sigmas = match left.sigmas {
+            Some(s) if c.tracking.keypoint_sigma == "octave" => {
+                s.iter().map(|v| v * scale).collect()
+            }
+            _ => vec![scale; left_xy.len()],
+        };
         Ok(StereoFrame {
             t_ns,
             keypoints: left_xy,
             u_right,
+            sigmas,
             descriptors: left.descriptors,
         })
     }

@@ -11,7 +11,7 @@ use super::{StereoCalibration, TrackState};
 use crate::config::{TrackingConfig, TriangulationConfig};
 use crate::geometry::{triangulate_rectified, Se3};
 use crate::matching::{best_two, DescriptorKind, Descriptors, MatchOptions, OwnedDescriptors};
-use crate::solver::{refine_pose, LmOptions, Loss, PoseObservation, PoseOptions};
+use crate::solver::{refine_pose_weighted, LmOptions, Loss, PoseObservation, PoseOptions};
 
 /// A frame's left features with their stereo matches.
 pub struct StereoFrame<'a> {
@@ -21,6 +21,9 @@ pub struct StereoFrame<'a> {
     pub keypoints: Vec<[f32; 2]>,
     /// Right column of each left keypoint's stereo match; NaN when unmatched.
     pub u_right: Vec<f32>,
+    /// Measurement noise σ of each left keypoint, pixels (finite, positive); its stereo
+    /// match shares it.
+    pub sigmas: Vec<f32>,
     /// Left descriptors.
     pub descriptors: Descriptors<'a>,
 }
@@ -308,13 +311,15 @@ pub struct Tracked {
     pub inliers: usize,
 }
 
-/// Observations for refinement from keypoint → point matches.
+/// Observations for refinement from keypoint → point matches, with their σ and keypoint
+/// indices.
 fn observations(
     map: &Map,
     frame: &StereoFrame,
     matches: &[Option<u64>],
-) -> (Vec<PoseObservation>, Vec<usize>) {
+) -> (Vec<PoseObservation>, Vec<f64>, Vec<usize>) {
     let mut obs = Vec::new();
+    let mut sigmas = Vec::new();
     let mut which = Vec::new();
     for (i, m) in matches.iter().enumerate() {
         let Some(p) = m.and_then(|id| map.points.get(&id)) else {
@@ -335,9 +340,10 @@ fn observations(
                 pixel,
             }
         });
+        sigmas.push(frame.sigmas[i] as f64);
         which.push(i);
     }
-    (obs, which)
+    (obs, sigmas, which)
 }
 
 /// Options of the motion-only refinement.
@@ -365,11 +371,11 @@ pub fn refine_matches(
     let k = calib.intrinsics();
     let mut pose = predicted;
     for _ in 0..2 {
-        let (obs, which) = observations(map, frame, &matches);
+        let (obs, sigmas, which) = observations(map, frame, &matches);
         if obs.len() < 6 {
             return None;
         }
-        let r = refine_pose(pose, &k, &obs, options);
+        let r = refine_pose_weighted(pose, &k, &obs, &sigmas, options);
         let r = match r {
             Ok(r) => r,
             Err(e) => {
@@ -414,6 +420,7 @@ pub fn insert_keyframe(
             world_from_cam,
             keypoints: frame.keypoints.clone(),
             u_right: frame.u_right.clone(),
+            sigmas: frame.sigmas.clone(),
             descriptors: frame.descriptors.to_owned(),
             points: vec![None; n],
             covisible: BTreeMap::new(),
@@ -840,10 +847,13 @@ pub fn bridge_keyframe(
     keypoints.extend_from_slice(&other.keypoints);
     let mut u_right = primary.u_right.clone();
     u_right.extend_from_slice(&other.u_right);
+    let mut sigmas = primary.sigmas.clone();
+    sigmas.extend_from_slice(&other.sigmas);
     let both = StereoFrame {
         t_ns: primary.t_ns,
         keypoints,
         u_right,
+        sigmas,
         descriptors: descriptors.view(),
     };
     let mut matches = tracked.matches;

@@ -15,7 +15,9 @@ pub use ba::{solve_bal, BundleAdjustment, BundleOptions};
 pub use linear::LinearSolver;
 pub use lm::{solve, LeastSquares, LmOptions, LmReport, Termination};
 pub use pnp::{solve_pnp_ransac, PnpRansacOptions, PnpResult};
-pub use pose::{refine_pose, PoseObservation, PoseOptions, PoseResult, StereoIntrinsics};
+pub use pose::{
+    refine_pose, refine_pose_weighted, PoseObservation, PoseOptions, PoseResult, StereoIntrinsics,
+};
 pub use pose_graph::{
     solve_pose_graph2, solve_pose_graph3, GraphPose, PoseGraphOptions, PoseGraphSe2, PoseGraphSe3,
     PoseGraphSolver,

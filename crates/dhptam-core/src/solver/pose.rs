@@ -11,6 +11,11 @@
 //! ```
 //!
 //! Points at depth Z ≤ `min_depth` contribute nothing at that estimate.
+//!
+//! Each observation may carry its own measurement noise σ (pixels, the same on every row of
+//! a stereo triple): [`refine_pose_weighted`] whitens residual and Jacobian rows by 1/σ, so
+//! the cost is ½ Σ ρ(‖r‖²/σ²) and the loss scale and outlier bound, stated for σ = 1 px,
+//! become σ times as wide in pixels for that observation.
 
 use nalgebra::{Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
@@ -62,7 +67,8 @@ pub struct PoseOptions {
     pub loss: Loss,
     /// Points nearer than this (metres, along the optical axis) are ignored.
     pub min_depth: f64,
-    /// Squared pixel error above which an observation counts as an outlier in the result.
+    /// Squared pixel error above which an observation counts as an outlier in the result
+    /// (with per-observation σ: the squared whitened error ‖r‖²/σ²).
     pub outlier_threshold_sq: f64,
     /// The LM loop's options (tracking runs a fixed small number of iterations).
     pub lm: LmOptions,
@@ -199,6 +205,8 @@ fn residual(
 struct PoseProblem<'a> {
     k: StereoIntrinsics,
     observations: &'a [PoseObservation],
+    /// 1/σ per observation; empty: σ = 1 px for all.
+    weights: &'a [f64],
     loss: Loss,
     min_depth: f64,
     pose: Se3,
@@ -209,12 +217,21 @@ struct PoseProblem<'a> {
 }
 
 impl PoseProblem<'_> {
+    fn weight(&self, i: usize) -> f64 {
+        self.weights.get(i).copied().unwrap_or(1.0)
+    }
+
+    fn weight_sq(&self, i: usize) -> f64 {
+        let w = self.weight(i);
+        w * w
+    }
+
     fn cost_at(&self, pose: &Se3) -> f64 {
         let rt = (pose.rotation.matrix(), pose.translation);
         let mut c = 0.0;
-        for o in self.observations {
+        for (i, o) in self.observations.iter().enumerate() {
             if let Some(r) = residual_value(&self.k, &rt, o, self.min_depth) {
-                c += self.loss.evaluate(r.norm_squared())[0];
+                c += self.loss.evaluate(r.norm_squared() * self.weight_sq(i))[0];
             }
         }
         0.5 * c
@@ -231,10 +248,16 @@ impl LeastSquares for PoseProblem<'_> {
         self.g = Vector6::zeros();
         // The rotation matrix once per linearisation, not once per observation.
         let rt = (self.pose.rotation.matrix(), self.pose.translation);
-        for o in self.observations {
+        for (i, o) in self.observations.iter().enumerate() {
             let Some((mut r, mut j, _)) = residual(&self.k, &rt, o, self.min_depth) else {
                 continue;
             };
+            // Whitening: r/σ and J/σ (the robust loss then sees ‖r‖²/σ²).
+            let w = self.weight(i);
+            if w != 1.0 {
+                r *= w;
+                j *= w;
+            }
             if let Some(corr) = self.loss.corrector(r.norm_squared()) {
                 corr.correct_jacobian(&r, &mut j);
                 corr.correct_residual(&mut r);
@@ -274,11 +297,50 @@ impl LeastSquares for PoseProblem<'_> {
 }
 
 /// Refines `cam_from_world` against fixed points; returns the pose, the report and which
-/// observations are inliers at the result.
+/// observations are inliers at the result. Every observation has σ = 1 px.
 pub fn refine_pose(
     cam_from_world: Se3,
     intrinsics: &StereoIntrinsics,
     observations: &[PoseObservation],
+    options: &PoseOptions,
+) -> Result<PoseResult> {
+    solve(cam_from_world, intrinsics, observations, &[], options)
+}
+
+/// [`refine_pose`] with a measurement noise `sigmas[i]` (pixels, finite and positive) per
+/// observation: residuals are whitened by 1/σ, so an observation's loss scale and its
+/// outlier bound (`options.outlier_threshold_sq`, stated for σ = 1 px) are σ times as wide
+/// in pixels. `inlier_rms` stays in pixels.
+pub fn refine_pose_weighted(
+    cam_from_world: Se3,
+    intrinsics: &StereoIntrinsics,
+    observations: &[PoseObservation],
+    sigmas: &[f64],
+    options: &PoseOptions,
+) -> Result<PoseResult> {
+    if sigmas.len() != observations.len() {
+        return Err(Error::invalid(
+            "sigmas",
+            format!("one per observation ({})", observations.len()),
+            sigmas.len(),
+        ));
+    }
+    if let Some(i) = sigmas.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(Error::invalid(
+            format!("sigmas[{i}]"),
+            "a finite positive number of pixels",
+            sigmas[i],
+        ));
+    }
+    let weights: Vec<f64> = sigmas.iter().map(|s| 1.0 / s).collect();
+    solve(cam_from_world, intrinsics, observations, &weights, options)
+}
+
+fn solve(
+    cam_from_world: Se3,
+    intrinsics: &StereoIntrinsics,
+    observations: &[PoseObservation],
+    weights: &[f64],
     options: &PoseOptions,
 ) -> Result<PoseResult> {
     let k = intrinsics;
@@ -289,6 +351,7 @@ pub fn refine_pose(
     let mut problem = PoseProblem {
         k: *k,
         observations,
+        weights,
         loss: options.loss,
         min_depth: options.min_depth,
         pose: cam_from_world,
@@ -301,9 +364,11 @@ pub fn refine_pose(
     let pose = problem.pose;
     let mut inliers = Vec::with_capacity(observations.len());
     let (mut sum, mut count) = (0.0, 0usize);
-    for o in observations {
+    for (i, o) in observations.iter().enumerate() {
         let ok = match pose_residual(k, &pose, o, options.min_depth) {
-            Some((r, _, dim)) if r.norm_squared() <= options.outlier_threshold_sq => {
+            Some((r, _, dim))
+                if r.norm_squared() * problem.weight_sq(i) <= options.outlier_threshold_sq =>
+            {
                 sum += r.norm_squared() / dim as f64;
                 true
             }

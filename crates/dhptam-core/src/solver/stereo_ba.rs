@@ -21,6 +21,10 @@
 //! fixed keyframe) removes the gauge freedom, otherwise the LM damping alone holds the gauge.
 //!
 //! Observations whose point lies at depth Z ≤ `min_depth` contribute nothing at that estimate.
+//!
+//! Each observation carries its measurement noise σ (pixels, shared by the rows of a stereo
+//! triple): residual and Jacobian rows are whitened by 1/σ, so the cost is ½ Σ ρ(‖r‖²/σ²) and
+//! the loss scale and outlier bound, stated for σ = 1 px, are σ times as wide in pixels.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -58,6 +62,9 @@ pub struct BaObservation {
     pub pixel: Vector2<f64>,
     /// Measured right-image column of a stereo match; `None` for a monocular observation.
     pub u_right: Option<f64>,
+    /// Measurement noise of the keypoint, pixels (finite, positive; 1 for a keypoint located
+    /// to the pixel, e.g. `scale^octave` for one detected on an image pyramid).
+    pub sigma: f64,
 }
 
 /// Options of [`solve_stereo_ba`].
@@ -67,8 +74,8 @@ pub struct StereoBaOptions {
     pub loss: Loss,
     /// Points nearer than this (metres, along the optical axis) are ignored. Default 1e-6.
     pub min_depth: f64,
-    /// Squared pixel error above which an observation is an outlier in the result (stereo and
-    /// mono alike). Default 7.815 (95 % χ², 3 dof, σ = 1 px).
+    /// Squared whitened error (‖r‖²/σ²) above which an observation is an outlier in the
+    /// result (stereo and mono alike). Default 7.815 (95 % χ², 3 dof).
     pub outlier_threshold_sq: f64,
     /// Worker threads for residuals, Jacobians and the elimination (0: one per core).
     /// Default 1: the mapping thread shares the machine with tracking.
@@ -97,8 +104,8 @@ impl Default for StereoBaOptions {
 pub struct StereoBaResult {
     /// The LM report (termination [`super::Termination::Interrupted`] when stopped).
     pub report: LmReport,
-    /// Per observation, in the caller's order: in front of the camera with a squared error at
-    /// most `outlier_threshold_sq`, at the returned estimate.
+    /// Per observation, in the caller's order: in front of the camera with a squared whitened
+    /// error ‖r‖²/σ² at most `outlier_threshold_sq`, at the returned estimate.
     pub inliers: Vec<bool>,
 }
 
@@ -205,6 +212,8 @@ struct Obs {
     free: Option<usize>,
     pixel: Vector2<f64>,
     u_right: Option<f64>,
+    /// 1/σ.
+    weight: f64,
 }
 
 struct StereoBa<'a> {
@@ -247,8 +256,9 @@ impl StereoBa<'_> {
                             o.u_right,
                             min_depth,
                         )
+                        .map(|r| (r, o.weight))
                     })
-                    .map(|r| loss.evaluate(r.norm_squared())[0])
+                    .map(|(r, w)| loss.evaluate(r.norm_squared() * w * w)[0])
                     .sum::<f64>()
             })
             .sum::<f64>()
@@ -292,9 +302,12 @@ impl LeastSquares for StereoBa<'_> {
                         wt[local] = M36::zeros();
                         continue;
                     };
-                    res[local] = r;
-                    jp[local] = a;
-                    wt[local] = add_observation(loss, &mut res[local], &mut jp[local], b, v, gp);
+                    // Whitening by 1/σ before the robust correction.
+                    let w = o.weight;
+                    res[local] = r * w;
+                    jp[local] = a * w;
+                    wt[local] =
+                        add_observation(loss, &mut res[local], &mut jp[local], b * w, v, gp);
                 }
             });
         schur.accumulate_cameras(&self.jp, &self.residual)
@@ -398,6 +411,13 @@ fn check_inputs(
             &format!("observations[{s}] (u, v, u_right)"),
             &[o.pixel.x, o.pixel.y, ur],
         )?;
+        if !(o.sigma.is_finite() && o.sigma > 0.0) {
+            return Err(Error::invalid(
+                format!("observations[{s}].sigma"),
+                "a finite positive number of pixels",
+                o.sigma,
+            ));
+        }
         if o.u_right.is_some() && k.baseline <= 0.0 {
             return Err(Error::invalid(
                 "intrinsics baseline",
@@ -451,6 +471,7 @@ pub fn solve_stereo_ba(
             free: None,
             pixel: Vector2::zeros(),
             u_right: None,
+            weight: 1.0,
         };
         n_obs
     ];
@@ -463,6 +484,7 @@ pub fn solve_stereo_ba(
             free: free_index[o.keyframe],
             pixel: o.pixel,
             u_right: o.u_right,
+            weight: 1.0 / o.sigma,
         };
         original[at] = s;
     }
@@ -521,8 +543,9 @@ pub fn solve_stereo_ba(
                 o.u_right,
                 options.min_depth,
             );
+            let w2 = o.weight * o.weight;
             inliers[problem.original[s]] =
-                r.is_some_and(|r| r.norm_squared() <= options.outlier_threshold_sq);
+                r.is_some_and(|r| r.norm_squared() * w2 <= options.outlier_threshold_sq);
         }
     }
     Ok(StereoBaResult { report, inliers })

@@ -14,10 +14,14 @@ pub fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
     let left = FrameFeatures {
         keypoints: &f.left.keypoints,
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
+        sigmas: None,
+        sigma_scale: 1.0,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
         descriptors: Descriptors::float(&f.right.descriptors, 32).unwrap(),
+        sigmas: None,
+        sigma_scale: 1.0,
     };
     system.track(f.t_ns, left, right).unwrap()
 }
