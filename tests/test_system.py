@@ -185,7 +185,7 @@ def test_keypoint_sigmas_weigh_tracking_and_mapping(tmp_path: Path) -> None:
         r = unit.track(f.t_ns, left, f.right)
         p = plain.track(f.t_ns, type(f.left)(left.keypoints, left.descriptors), f.right)
         np.testing.assert_array_equal(r.pose, p.pose)
-    # The σ travel with the keyframes through a saved map (format version 3).
+    # The σ travel with the keyframes through a saved map (format version 3 on).
     octave = dhptam.Config.from_toml('[tracking]\nkeypoint_sigma = "octave"')
     reference = dhptam.System(CALIB, octave, threaded=False)
     expected = [reference.track(f.t_ns, left, f.right) for f, left in frames[:40]]
@@ -304,7 +304,7 @@ def test_bridge_is_refused_unless_it_is_the_last_tracked_frame() -> None:
 # -- predicted frames across illumination floods (issue 8, accuracy) ----------------------------
 
 
-def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone() -> None:
+def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone(tmp_path: Path) -> None:
     frames = generate(frames=120, seed=1)
     truth = np.array([f.world_from_cam[:3, 3] for f in frames])
     system = dhptam.System(CALIB, None, threaded=False)
@@ -332,6 +332,37 @@ def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone() -> No
     assert states == ["ok"] * len(states), states
     assert system.tracking_totals()["predicted"] == 3
     assert ate(positions(system), truth) < 0.03
+    # Once frame 63 is measured, the written trajectory places the predicted frames on the
+    # geodesic between frames 59 and 63, by time, instead of the extrapolation.
+    t, poses = system.trajectory()
+    between = SE3.from_matrix(np.linalg.inv(poses[59]) @ poses[63]).log()
+    for k in range(60, 63):
+        s = (t[k] - t[59]) / (t[63] - t[59])
+        assert np.allclose(poses[k], poses[59] @ SE3.exp(s * between).matrix(), atol=1e-9), k
+    assert not np.allclose(poses[62], predicted[2].pose, atol=1e-6)
+    # The predicted flags travel through a saved map (format version 4) ...
+    system.save_map(tmp_path / "map.bin")
+    loaded = dhptam.System(CALIB, None, threaded=False)
+    loaded.load_map(tmp_path / "map.bin")
+    assert np.allclose(loaded.trajectory()[1], poses, atol=1e-12)
+    # ... and a version-3 map (the same file without them) reads every record as measured:
+    # the stored predictions come back (moved with their keyframe by bundle adjustment since
+    # they were made, by under a millimetre here). A record is t (8), keyframe (8), pose (56), flag (1);
+    # after the records come the segment-start count and ids (none here).
+    data = bytearray((tmp_path / "map.bin").read_bytes())
+    n = len(t)
+    assert int.from_bytes(data[8:12], "little") == 4 and data[-8:] == bytes(8)
+    start = len(data) - 8 - 73 * n
+    assert int.from_bytes(data[start - 8 : start], "little") == n
+    records = b"".join(data[start + 73 * i : start + 73 * i + 72] for i in range(n))
+    v3 = data[:8] + (3).to_bytes(4, "little") + data[12:start] + records + data[-8:]
+    (tmp_path / "v3.bin").write_bytes(bytes(v3))
+    old = dhptam.System(CALIB, None, threaded=False)
+    old.load_map(tmp_path / "v3.bin")
+    old_poses = old.trajectory()[1]
+    assert np.allclose(old_poses[60:63], [r.pose for r in predicted], atol=2e-3)
+    assert not np.allclose(old_poses[62], poses[62], atol=1e-6)
+    assert np.allclose(np.delete(old_poses, [60, 61, 62], axis=0), np.delete(poses, [60, 61, 62], axis=0), atol=1e-12)
 
 
 def test_a_bridge_spans_predicted_frames_between_two_appearances() -> None:

@@ -112,3 +112,29 @@ pub fn ensure_finite(what: &str, values: &[f64]) -> Result<()> {
         )),
     }
 }
+
+/// Checks a per-observation measurement noise: `count` values (the list is named `what`),
+/// each a finite positive number of pixels.
+pub fn ensure_sigmas<T>(what: &str, sigmas: &[T], count: usize) -> Result<()>
+where
+    T: Copy + Into<f64> + std::fmt::Display,
+{
+    if sigmas.len() != count {
+        return Err(Error::invalid(
+            what,
+            format!("{count} values, one per observation"),
+            sigmas.len(),
+        ));
+    }
+    match sigmas.iter().position(|&s| {
+        let s: f64 = s.into();
+        !(s.is_finite() && s > 0.0)
+    }) {
+        None => Ok(()),
+        Some(i) => Err(Error::invalid(
+            format!("{what}[{i}]"),
+            "a finite positive number of pixels",
+            sigmas[i],
+        )),
+    }
+}

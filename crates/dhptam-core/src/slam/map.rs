@@ -80,6 +80,9 @@ pub struct FrameRecord {
     pub keyframe: u64,
     /// Pose of the frame in the keyframe's camera frame, `kf_from_cam`.
     pub kf_from_cam: Se3,
+    /// Whether the pose is a motion-model prediction without a measurement
+    /// ([`super::tracking::predict_only`]); see [`Map::trajectory_poses`].
+    pub predicted: bool,
 }
 
 /// Where a fused map point went ([`Map::replaced`]).
@@ -129,6 +132,44 @@ impl Map {
         self.keyframes
             .get(&record.keyframe)
             .map(|kf| kf.world_from_cam * record.kf_from_cam)
+    }
+
+    /// `(t_ns, world_from_cam)` of every trajectory record whose keyframe still exists, in
+    /// order. A run of predicted records between two measured ones (frames whose images
+    /// carried no measurement, e.g. an illumination flood) is placed on the geodesic between
+    /// those two measured poses, by time: once the frame after the run is measured, the
+    /// interpolation uses both sides, where the prediction made while tracking extrapolated
+    /// from one. A predicted run with no measured record after it keeps its predictions.
+    pub fn trajectory_poses(&self) -> Vec<(i64, Se3)> {
+        let poses: Vec<(&FrameRecord, Se3)> = self
+            .trajectory
+            .iter()
+            .filter_map(|r| self.frame_pose(r).map(|p| (r, p)))
+            .collect();
+        let mut out: Vec<(i64, Se3)> = poses.iter().map(|(r, p)| (r.t_ns, *p)).collect();
+        let mut i = 0;
+        while i < poses.len() {
+            if !poses[i].0.predicted {
+                i += 1;
+                continue;
+            }
+            let end = (i..poses.len())
+                .find(|&j| !poses[j].0.predicted)
+                .unwrap_or(poses.len());
+            if i > 0 && end < poses.len() {
+                let (a, pose_a) = poses[i - 1];
+                let (b, pose_b) = poses[end];
+                let span = (b.t_ns - a.t_ns) as f64;
+                if span > 0.0 {
+                    for (k, slot) in out.iter_mut().enumerate().take(end).skip(i) {
+                        let s = (poses[k].0.t_ns - a.t_ns) as f64 / span;
+                        slot.1 = pose_a.interpolate(&pose_b, s);
+                    }
+                }
+            }
+            i = end;
+        }
+        out
     }
 
     /// The id a point lives on under: `point` itself, or the point it was fused into (entries

@@ -1,10 +1,11 @@
 //! Saving and loading a map with the tracker state: a little-endian binary file.
 //!
-//! Layout: the magic `DHPTAMAP`, a `u32` version (3), the calibration, the descriptor kind
+//! Layout: the magic `DHPTAMAP`, a `u32` version (4), the calibration, the descriptor kind
 //! and width, the tracker state, the id counters, the keyframes (per keypoint x, y, u_right
-//! and, since version 3, its σ), the map points, the loops, the trajectory and (since
-//! version 2) the first keyframes of unjoined map segments. Version-1 files (no segment
-//! list) and version-2 files (no σ: 1 px each) are still read. Poses are stored as
+//! and, since version 3, its σ), the map points, the loops, the trajectory (since version 4
+//! with a predicted flag per record) and (since version 2) the first keyframes of unjoined
+//! map segments. Version-1 files (no segment list), version-2 files (no σ: 1 px each) and
+//! version-3 files (no predicted flags: every record measured) are still read. Poses are stored as
 //! translation (3 × f64) and quaternion x-y-z-w (4 × f64) of `world_from_cam` /
 //! `kf_from_cam`. The file is written to `<path>.tmp` and
 //! renamed, so a crash never leaves a truncated map under the final name.
@@ -23,7 +24,7 @@ use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors, OwnedDescriptors};
 
 const MAGIC: &[u8; 8] = b"DHPTAMAP";
-const VERSION: u32 = 3;
+const VERSION: u32 = 4;
 
 struct Writer(Vec<u8>);
 
@@ -250,6 +251,7 @@ pub(crate) fn save(
         w.i64(r.t_ns);
         w.u64(r.keyframe);
         w.se3(&r.kf_from_cam);
+        w.u8(r.predicted as u8);
     }
     w.u64(map.segment_starts.len() as u64);
     for s in &map.segment_starts {
@@ -339,6 +341,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
             t_ns: r.i64()?,
             keyframe: r.u64()?,
             kf_from_cam: r.se3()?,
+            predicted: false,
         })
     } else {
         None
@@ -443,6 +446,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
             t_ns: r.i64()?,
             keyframe: r.u64()?,
             kf_from_cam: r.se3()?,
+            predicted: version >= 4 && r.u8()? != 0,
         });
     }
     if version >= 2 {

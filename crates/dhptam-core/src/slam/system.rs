@@ -18,7 +18,7 @@ use super::tracking::{
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
-use crate::error::{Error, Result};
+use crate::error::{ensure_sigmas, Error, Result};
 use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors};
 use crate::place::PlaceDatabase;
@@ -349,20 +349,7 @@ impl System {
             ));
         }
         if let Some(s) = f.sigmas {
-            if s.len() != n {
-                return Err(Error::invalid(
-                    format!("{side}.sigmas"),
-                    format!("{n} values, one per keypoint"),
-                    s.len(),
-                ));
-            }
-            if let Some(i) = s.iter().position(|v| !(v.is_finite() && *v > 0.0)) {
-                return Err(Error::invalid(
-                    format!("{side}.sigmas[{i}]"),
-                    "a finite positive number of pixels",
-                    s[i],
-                ));
-            }
+            ensure_sigmas(&format!("{side}.sigmas"), s, n)?;
         }
         let this = (f.descriptors.kind(), f.descriptors.width());
         match self.descriptor {
@@ -718,13 +705,10 @@ impl System {
         }
     }
 
-    /// Timestamps and `world_from_cam` of every tracked frame, in order.
+    /// Timestamps and `world_from_cam` of every tracked frame, in order; predicted frames
+    /// between two measured ones are interpolated between them ([`Map::trajectory_poses`]).
     pub fn trajectory(&self) -> Vec<(i64, Se3)> {
-        let map = read_lock(&self.shared.map);
-        map.trajectory
-            .iter()
-            .filter_map(|r| map.frame_pose(r).map(|p| (r.t_ns, p)))
-            .collect()
+        read_lock(&self.shared.map).trajectory_poses()
     }
 
     /// Timestamps and `world_from_cam` of the keyframes, by id; a bridge keyframe taken at

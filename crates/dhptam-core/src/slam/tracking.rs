@@ -541,6 +541,7 @@ pub fn bootstrap(
         t_ns: frame.t_ns,
         keyframe: id,
         kf_from_cam: Se3::identity(),
+        predicted: false,
     };
     map.trajectory.push(record);
     *state = TrackerState {
@@ -583,6 +584,7 @@ pub fn reinitialise(
         t_ns: frame.t_ns,
         keyframe: id,
         kf_from_cam: Se3::identity(),
+        predicted: false,
     };
     map.trajectory.push(record);
     state.last = Some(record);
@@ -709,6 +711,7 @@ pub fn commit_tracked(
             t_ns: frame.t_ns,
             keyframe: kf.id,
             kf_from_cam: kf.world_from_cam.inverse() * world_from_cam,
+            predicted: false,
         });
     if let Some(record) = record {
         map.trajectory.push(record);
@@ -777,6 +780,7 @@ pub fn predict_only(
         t_ns,
         keyframe: reference.id,
         kf_from_cam: reference.world_from_cam.inverse() * world_from_cam,
+        predicted: true,
     };
     map.trajectory.push(record);
     state.last = Some(record);
@@ -873,6 +877,7 @@ pub fn bridge_keyframe(
         t_ns: primary.t_ns,
         keyframe: id,
         kf_from_cam: Se3::identity(),
+        predicted: false,
     };
     state.measured = Some(record);
     state.last = Some(if last.t_ns == primary.t_ns {
@@ -882,6 +887,7 @@ pub fn bridge_keyframe(
             t_ns: last.t_ns,
             keyframe: id,
             kf_from_cam: world_from_cam.inverse() * last_world_from_cam,
+            predicted: last.predicted,
         }
     });
     state.reference = Some(id);

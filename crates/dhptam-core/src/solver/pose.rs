@@ -21,7 +21,7 @@ use nalgebra::{Matrix6, SMatrix, Vector2, Vector3, Vector6};
 
 use super::lm::{self, LeastSquares, LmOptions, LmReport, Step};
 use super::robust::Loss;
-use crate::error::{Error, Result};
+use crate::error::{ensure_sigmas, Error, Result};
 use crate::geometry::Se3;
 
 /// Rectified stereo (or monocular, ignoring `baseline`) pinhole intrinsics.
@@ -318,20 +318,7 @@ pub fn refine_pose_weighted(
     sigmas: &[f64],
     options: &PoseOptions,
 ) -> Result<PoseResult> {
-    if sigmas.len() != observations.len() {
-        return Err(Error::invalid(
-            "sigmas",
-            format!("one per observation ({})", observations.len()),
-            sigmas.len(),
-        ));
-    }
-    if let Some(i) = sigmas.iter().position(|s| !(s.is_finite() && *s > 0.0)) {
-        return Err(Error::invalid(
-            format!("sigmas[{i}]"),
-            "a finite positive number of pixels",
-            sigmas[i],
-        ));
-    }
+    ensure_sigmas("sigmas", sigmas, observations.len())?;
     let weights: Vec<f64> = sigmas.iter().map(|s| 1.0 / s).collect();
     solve(cam_from_world, intrinsics, observations, &weights, options)
 }
