@@ -23,6 +23,44 @@ def evaluated_run(sequence: Path, out: Path, reference: Any, **run_args: Any) ->
     return result, ev
 
 
+def bench_config(base: Path | None, overrides: str = "") -> Any:
+    """The configuration of a bench run: the TOML file ``base`` (``--config``; ``None``: the
+    defaults) with the tables of ``overrides`` (TOML text, the bench's own options) merged
+    over it, key by key."""
+    import json
+
+    import tomllib
+
+    from dhptam import _core
+
+    merged: dict[str, Any] = tomllib.loads(base.read_text()) if base is not None else {}
+    for table, values in tomllib.loads(overrides).items():
+        merged.setdefault(table, {}).update(values)
+
+    def literal(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, list):
+            return "[" + ", ".join(literal(x) for x in v) + "]"
+        return json.dumps(v) if isinstance(v, str) else repr(v)
+
+    text = "\n".join(
+        f"[{table}]\n" + "".join(f"{k} = {literal(v)}\n" for k, v in values.items())
+        for table, values in merged.items()
+    )
+    return _core.Config.from_toml(text, str(base) if base is not None else "<bench>")
+
+
+def add_config_option(parser: Any) -> None:
+    """``--config FILE``: the configuration the bench's runs start from."""
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="configuration TOML the runs start from (the bench's own options override it)",
+    )
+
+
 def keypoint_sigma_toml(keypoint_sigma: str | None) -> str:
     """A ``[tracking] keypoint_sigma`` table for ``--keypoint-sigma`` (empty for ``None``: the
     configuration's default)."""

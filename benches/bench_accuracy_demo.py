@@ -26,7 +26,14 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import choices, evaluated_run, finish_table, keypoint_sigma_toml
+from _accuracy import (
+    add_config_option,
+    bench_config,
+    choices,
+    evaluated_run,
+    finish_table,
+    keypoint_sigma_toml,
+)
 
 
 def main() -> int:
@@ -49,9 +56,9 @@ def main() -> int:
         help="[tracking] keypoint_sigma (default: the configuration's)",
     )
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy-demo"))
+    add_config_option(parser)
     args = parser.parse_args()
 
-    from dhptam import _core
     from dhptam.demo import GROUND_TRUTH, demo_sequence
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
@@ -81,9 +88,10 @@ def main() -> int:
                 for warp in (warps if mode != "frames" else warps[:1])
             ]
             for bridge, flood, warp in variants:
-                config = _core.Config.from_toml(
+                config = bench_config(
+                    args.config,
                     f"[fusion]\nbridge = {str(bridge).lower()}\nflood_predict = {str(flood).lower()}"
-                    f'\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma)
+                    f'\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma),
                 )
                 for backend in backends:
                     tag = ("" if bridge else "-nobridge") + ("" if flood else "-noflood")

@@ -28,7 +28,16 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, keypoint_sigma_toml, table_row
+from _accuracy import (
+    TABLE_HEAD,
+    add_config_option,
+    bench_config,
+    choices,
+    evaluated_run,
+    finish_table,
+    keypoint_sigma_toml,
+    table_row,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -49,6 +58,7 @@ def main() -> int:
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy"))
+    add_config_option(parser)
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
     parser.add_argument(
         "--warp-depth",
@@ -63,7 +73,6 @@ def main() -> int:
     )
     args = parser.parse_args()
 
-    from dhptam import Config
     from dhptam.demo import GROUND_TRUTH, cache_dir
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
@@ -107,8 +116,8 @@ def main() -> int:
         for mode in modes:
             # The warp depth only matters where events are warped.
             for warp in warps if mode != "frames" else warps[:1]:
-                config = Config.from_toml(
-                    f'[fusion]\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma)
+                config = bench_config(
+                    args.config, f'[fusion]\nwarp_depth = "{warp}"' + keypoint_sigma_toml(args.keypoint_sigma)
                 )
                 compared = len(warps) > 1 and mode != "frames"
                 out = args.out / name / (f"{mode}-{warp}" if compared else mode)

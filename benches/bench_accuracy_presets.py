@@ -26,7 +26,16 @@ import platform
 import sys
 from pathlib import Path
 
-from _accuracy import TABLE_HEAD, choices, evaluated_run, finish_table, keypoint_sigma_toml, table_row
+from _accuracy import (
+    TABLE_HEAD,
+    add_config_option,
+    bench_config,
+    choices,
+    evaluated_run,
+    finish_table,
+    keypoint_sigma_toml,
+    table_row,
+)
 
 DEFAULT_PRESETS = "desk,desk-mixed,dark,desk-flicker,1d-trans,6dof,loop"
 
@@ -41,6 +50,7 @@ def main() -> int:
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
     parser.add_argument("--out", type=Path, default=Path("bench-presets"))
+    add_config_option(parser)
     parser.add_argument("--sync", action="store_true", help="mapping inline (deterministic runs)")
     parser.add_argument(
         "--keypoint-sigma",
@@ -50,7 +60,6 @@ def main() -> int:
     )
     args = parser.parse_args()
 
-    from dhptam import Config
     from dhptam.demo import GROUND_TRUTH, cache_dir
     from dhptam.eval import load_trajectory
     from dhptam.run import MODES
@@ -68,7 +77,7 @@ def main() -> int:
         "",
         *TABLE_HEAD,
     ]
-    config = Config.from_toml(keypoint_sigma_toml(args.keypoint_sigma))
+    config = bench_config(args.config, keypoint_sigma_toml(args.keypoint_sigma))
     for preset in presets:
         sequence = root / preset
         if not (sequence / GROUND_TRUTH).is_file():

@@ -150,44 +150,60 @@ class _RecordingSystem:
         self.calls: list[tuple[Any, ...]] = []
         self.refuse = refuse
 
-    def track(self, t_ns: int, left: Any, right: Any, sigma_scale: float = 1.0) -> Any:
-        self.calls.append(("track", t_ns, left, right, sigma_scale))
+    def track(
+        self, t_ns: int, left: Any, right: Any, sigma_scale: float = 1.0, disparity: Any = (1.0, 0.0)
+    ) -> Any:
+        self.calls.append(("track", t_ns, left, right, sigma_scale, disparity))
         return type("R", (), {"state": "ok"})()
 
     def bridge(
-        self, t_ns: int, primary: Any, other: Any, sigma_scales: tuple[float, float] = (1.0, 1.0)
+        self,
+        t_ns: int,
+        primary: Any,
+        other: Any,
+        sigma_scales: tuple[float, float] = (1.0, 1.0),
+        disparities: Any = ((1.0, 0.0), (1.0, 0.0)),
     ) -> Any:
-        self.calls.append(("bridge", t_ns, primary, other, sigma_scales))
+        self.calls.append(("bridge", t_ns, primary, other, sigma_scales, disparities))
         return None if self.refuse else object()
 
 
 def test_the_run_loop_bridges_entering_before_and_leaving_after_tracking() -> None:
     from types import SimpleNamespace
 
-    from dhptam.run import _track_bridged
+    from dhptam.run import ImageModel, _track_bridged
 
-    # [tracking] dvs_sigma_scale = 1.4: the σ of every DVS-biased image is scaled.
-    def scale(bias: str) -> float:
-        return 1.4 if bias == "dvs" else 1.0
+    # [tracking] dvs_sigma_scale = 1.4: the σ of every DVS-biased image is scaled, and its
+    # disparities get the event cameras' correction (here a stand-in depending on the depth).
+    def model(bias: str, warp_depth_m: float) -> ImageModel:
+        return ImageModel(1.4, (0.9, warp_depth_m)) if bias == "dvs" else ImageModel()
 
-    frame = SimpleNamespace(index=5, t_ns=500, bias="dvs")
+    aps, dvs = ImageModel(), ImageModel(1.4, (0.9, 0.0))
+    frame = SimpleNamespace(index=5, t_ns=500, bias="dvs", warp_depth_m=0.0)
     own, previous_own, other = ("L5", "R5"), ("L4", "R4"), ("oL", "oR")
     # No switch: plain tracking.
     s = _RecordingSystem()
-    assert _track_bridged(s, frame, own, None, (4, previous_own, 1.0), scale)[1] == "none"
-    assert s.calls == [("track", 500, "L5", "R5", 1.4)]
+    assert _track_bridged(s, frame, own, None, (4, previous_own, aps), model)[1] == "none"
+    assert s.calls == [("track", 500, "L5", "R5", 1.4, (0.9, 0.0))]
     # Entering (the bridge renders frame 4): frame 4 is bridged with the features it was
-    # tracked with, then frame 5 is tracked with its own.
+    # tracked with, then frame 5 is tracked with its own; the bridge rendering's events were
+    # warped through frame 4's depth.
     s = _RecordingSystem()
-    entering = (SimpleNamespace(index=4, t_ns=400, bias="dvs"), other)
-    assert _track_bridged(s, frame, own, entering, (4, previous_own, 1.0), scale)[1] == "inserted"
-    assert s.calls == [("bridge", 400, previous_own, other, (1.0, 1.4)), ("track", 500, "L5", "R5", 1.4)]
+    entering = (SimpleNamespace(index=4, t_ns=400, bias="dvs", warp_depth_m=2.0), other)
+    assert _track_bridged(s, frame, own, entering, (4, previous_own, aps), model)[1] == "inserted"
+    assert s.calls == [
+        ("bridge", 400, previous_own, other, (1.0, 1.4), ((1.0, 0.0), (0.9, 2.0))),
+        ("track", 500, "L5", "R5", 1.4, (0.9, 0.0)),
+    ]
     # Leaving (the bridge renders frame 5 the old way): tracked with that, then bridged to its own.
     s = _RecordingSystem(refuse=True)
-    frame = SimpleNamespace(index=5, t_ns=500, bias="aps")
-    leaving = (SimpleNamespace(index=5, t_ns=500, bias="dvs"), other)
-    assert _track_bridged(s, frame, own, leaving, (4, previous_own, 1.4), scale)[1] == "refused"
-    assert s.calls == [("track", 500, "oL", "oR", 1.4), ("bridge", 500, other, own, (1.4, 1.0))]
+    frame = SimpleNamespace(index=5, t_ns=500, bias="aps", warp_depth_m=0.0)
+    leaving = (SimpleNamespace(index=5, t_ns=500, bias="dvs", warp_depth_m=0.0), other)
+    assert _track_bridged(s, frame, own, leaving, (4, previous_own, dvs), model)[1] == "refused"
+    assert s.calls == [
+        ("track", 500, "oL", "oR", 1.4, (0.9, 0.0)),
+        ("bridge", 500, other, own, (1.4, 1.0), ((0.9, 0.0), (1.0, 0.0))),
+    ]
 
 
 # -- illumination floods (issue 8, accuracy) -----------------------------------------------------

@@ -217,6 +217,9 @@ def test_bad_keypoint_sigmas_are_refused_with_names() -> None:
     for scale in (0.0, -1.0, float("nan")):
         with pytest.raises(dhptam.InputError, match=re.escape("left.sigma_scale")):
             system.track(0, f.left, f.right, sigma_scale=scale)
+    for disparity in ((0.0, 0.0), (-1.0, 0.0), (1.0, float("inf"))):
+        with pytest.raises(dhptam.InputError, match=re.escape("left.disparity")):
+            system.track(0, f.left, f.right, disparity=disparity)
 
 
 def _switch_appearance(frames: list[Frame], at: int, seed: int = 7) -> list[Frame]:
@@ -362,7 +365,9 @@ def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone(tmp_pat
     old_poses = old.trajectory()[1]
     assert np.allclose(old_poses[60:63], [r.pose for r in predicted], atol=2e-3)
     assert not np.allclose(old_poses[62], poses[62], atol=1e-6)
-    assert np.allclose(np.delete(old_poses, [60, 61, 62], axis=0), np.delete(poses, [60, 61, 62], axis=0), atol=1e-12)
+    assert np.allclose(
+        np.delete(old_poses, [60, 61, 62], axis=0), np.delete(poses, [60, 61, 62], axis=0), atol=1e-12
+    )
 
 
 def test_a_bridge_spans_predicted_frames_between_two_appearances() -> None:

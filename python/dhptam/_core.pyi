@@ -405,6 +405,7 @@ class PySystem:
         right_descriptors: npt.NDArray[np.float32] | npt.NDArray[np.uint8],
         left_sigmas: npt.NDArray[np.float32] | None = None,
         sigma_scale: float = 1.0,
+        disparity: tuple[float, float] = ...,  # (1.0, 0.0)
     ) -> tuple[_FloatArray, str, int, bool]: ...
     # Predicted (untracked) frames across illumination floods (issue 8, accuracy).
     def predict(self, t_ns: int) -> tuple[_FloatArray, str, int, bool]: ...
@@ -424,6 +425,8 @@ class PySystem:
         other_left_sigmas: npt.NDArray[np.float32] | None = None,
         sigma_scale: float = 1.0,
         other_sigma_scale: float = 1.0,
+        disparity: tuple[float, float] = ...,  # (1.0, 0.0)
+        other_disparity: tuple[float, float] = ...,  # (1.0, 0.0)
     ) -> tuple[int, int, int] | None: ...
     def tracking_totals(self) -> dict[str, int]: ...
     def tracked_depth(self) -> float | None: ...

@@ -171,7 +171,8 @@ class BridgeImages:
     other frame's exposure (mean and contrast), so that the tracker can see
     the same instant both ways and insert a bridge keyframe (``dhptam.System.bridge``).
     ``index``/``t_ns`` name that frame; ``bias`` and ``beta_left``/``beta_right`` are the
-    mode and β of this blend (the neighbour's).
+    mode and β of this blend (the neighbour's); ``warp_depth_m`` the depth of the plane its
+    events were warped through (0: infinity).
     """
 
     index: int
@@ -181,6 +182,7 @@ class BridgeImages:
     bias: str
     beta_left: float
     beta_right: float
+    warp_depth_m: float = 0.0
 
 
 def _exposed_like(frame: _U8, like: _U8) -> _U8:
@@ -271,6 +273,7 @@ class Frontend:
         self.flood_predict: bool = bool(fusion_cfg["flood_predict"])
         self.warp_depth: str = str(fusion_cfg["warp_depth"])
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
+        self.event_disparity_enabled: bool = bool(fusion_cfg["event_disparity"])
         # Event counts (left + right) of the windows seen, by frame index (flood reference).
         self._window_counts: dict[int, int] = {}
         self.align_px: tuple[float, float] = (
@@ -557,6 +560,32 @@ class Frontend:
             for side in ("left", "right")
         )
 
+    def event_disparity(self, depth_m: float = 0.0) -> tuple[float, float]:
+        """``(scale, offset_px)`` that map the stereo disparity ``d`` of the event images
+        warped into the frame cameras through the plane at ``depth_m`` (0: infinity) to the
+        frame cameras' disparity ``scale · d + offset_px`` (``System.track``'s
+        ``disparity``).
+
+        A warped event pair keeps the event cameras' parallax: a point at depth ``Z`` shows
+        ``f b_e / Z − f (b_e − b_f) / D`` through the plane at ``D``, with ``b_e`` and
+        ``b_f`` the event and frame baselines along the rectified rows (the event cameras'
+        centres in the rectified frame cameras) and ``f`` the frame focal length. Hence
+        ``scale = b_f / b_e`` and ``offset_px = scale · f (b_e − b_f) / D``. Identity in mode
+        ``frames``, with ``[fusion] event_disparity = false``, or when the event cameras
+        share the frame cameras' centres."""
+        if self.mode == "frames" or not self.event_disparity_enabled:
+            return (1.0, 0.0)
+        b_f = float(self.frame_rect.baseline_m)
+        left = np.asarray(self.frame_from_event["left"].translation, np.float64)
+        right = np.asarray(self.frame_from_event["right"].translation, np.float64)
+        b_e = float(right[0] + b_f - left[0])
+        if not (b_e > 0.0 and b_f > 0.0) or abs(b_e - b_f) <= 1e-9 * b_f:
+            return (1.0, 0.0)
+        scale = b_f / b_e
+        depth = float(depth_m)
+        offset = scale * float(self.frame_rect.K[0, 0]) * (b_e - b_f) / depth if depth > 0.0 else 0.0
+        return (scale, offset)
+
     def quantised_depth(self, depth_m: float | None, current: float | None = None) -> float:
         """``depth_m`` rounded to the inverse-depth bins of ``[fusion] warp_depth_step_px``
         (bin width ``step_px / warp_parallax_px`` in 1/m), so consecutive frames share a warp
@@ -682,6 +711,7 @@ class Frontend:
             bias=neighbour.bias,
             beta_left=neighbour.beta_left,
             beta_right=neighbour.beta_right,
+            warp_depth_m=source.warp_depth_m,
         )
 
     # -- iteration with prefetch ---------------------------------------------------------------

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -615,13 +615,40 @@ def _track_all(
             _track_frames(
                 extracted, system, outputs, states, realtime, bar, sink, interrupt_pending,
                 frontend.flood_predict, feed,
-                float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"]),
+                _image_models(frontend),
             )  # fmt: skip
         finally:
             feed.close()
             extracted.close()
             if bar is not None:
                 bar.close()
+
+
+class ImageModel(NamedTuple):
+    """How the tracker reads one image pair's features: the factor on its keypoint σ
+    (``System.track``'s ``sigma_scale``) and its disparity correction (``disparity``)."""
+
+    sigma_scale: float = 1.0
+    disparity: tuple[float, float] = (1.0, 0.0)
+
+
+def _image_models(frontend: Any) -> Callable[[str, float], ImageModel]:
+    """The :class:`ImageModel` of an image from its fusion bias and warp depth: DVS-biased
+    images get ``[tracking] dvs_sigma_scale``, and event-dominated ones (``dvs``, ``events``)
+    the event cameras' disparity correction (:meth:`Frontend.event_disparity`)."""
+    dvs_sigma_scale = float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"])
+
+    def model(bias: str, warp_depth_m: float) -> ImageModel:
+        return ImageModel(
+            dvs_sigma_scale if bias == "dvs" else 1.0,
+            frontend.event_disparity(warp_depth_m) if bias in ("dvs", "events") else (1.0, 0.0),
+        )
+
+    return model
+
+
+def _plain_model(bias: str, warp_depth_m: float) -> ImageModel:
+    return ImageModel()
 
 
 def _track_frames(
@@ -635,22 +662,19 @@ def _track_frames(
     interrupt_pending: Callable[[], bool],
     flood_predict: bool = False,
     feed: _DepthFeed | None = None,
-    dvs_sigma_scale: float = 1.0,
+    model: Callable[[str, float], ImageModel] = _plain_model,
 ) -> None:
     """The tracking loop on the caller's thread: one frame tracked and recorded per step; a
     Ctrl-C takes effect between frames, so the trajectory and ``frames.csv`` hold the same
     frames. With ``flood_predict`` a flood frame's pose is predicted by the motion model
     (``System.predict``) instead of tracked, and the last clean frame stays the one a bridge
     keyframe may start from. After each frame the median depth of the map points it was
-    tracked with goes to ``feed`` (the next frame's warp depth). The keypoint σ of DVS-biased
-    images are multiplied by ``dvs_sigma_scale`` (``[tracking]``)."""
+    tracked with goes to ``feed`` (the next frame's warp depth). ``model`` gives each
+    image's :class:`ImageModel` from its fusion bias and warp depth."""
     wall0 = time.perf_counter()
     t_first: int | None = None
-    # (frame index, (left, right) features it was tracked with, their σ factor)
-    last: tuple[int, Any, float] | None = None
-
-    def scale(bias: str) -> float:
-        return dvs_sigma_scale if bias == "dvs" else 1.0
+    # (frame index, (left, right) features it was tracked with, their image model)
+    last: tuple[int, Any, ImageModel] | None = None
 
     for frame, t_front, left, right, t_extract, bridge in extracted:
         if interrupt_pending():
@@ -666,8 +690,8 @@ def _track_frames(
         if frame.flood and flood_predict:
             r, bridged = system.predict(frame.t_ns), "none"
         else:
-            r, bridged = _track_bridged(system, frame, (left, right), bridge, last, scale)
-            last = (frame.index, (left, right), scale(frame.bias))
+            r, bridged = _track_bridged(system, frame, (left, right), bridge, last, model)
+            last = (frame.index, (left, right), model(frame.bias, frame.warp_depth_m))
         t_track = time.perf_counter() - t0
         if feed is not None:
             feed.publish(frame.index, system.tracked_depth())
@@ -734,8 +758,8 @@ def _track_bridged(
     frame: Any,
     features: tuple[Any, Any],
     bridge: Any,
-    last: tuple[int, Any, float] | None,
-    scale: Callable[[str], float] = lambda bias: 1.0,
+    last: tuple[int, Any, ImageModel] | None,
+    model: Callable[[str, float], ImageModel] = _plain_model,
 ) -> tuple[Any, str]:
     """Tracks one frame, inserting a bridge keyframe at a fusion-mode switch.
 
@@ -744,21 +768,34 @@ def _track_bridged(
     ``last``'s features): the bridge keyframe goes in at that frame's pose before this frame
     is tracked. Leaving one it renders this frame in the previous frames' mode: the frame is
     tracked with that rendering (it matches the map) and the bridge keyframe adds its own
-    image. ``scale`` gives the keypoint σ factor of an image from its fusion bias. Returns the
-    track result and ``none``, ``inserted`` or ``refused``.
+    image. ``model`` gives an image's :class:`ImageModel` from its fusion bias and warp
+    depth. Returns the track result and ``none``, ``inserted`` or ``refused``.
     """
-    here = scale(frame.bias)
+    here = model(frame.bias, frame.warp_depth_m)
+
+    def track(feats: tuple[Any, Any], m: ImageModel) -> Any:
+        return system.track(frame.t_ns, *feats, sigma_scale=m.sigma_scale, disparity=m.disparity)
+
+    def bridge_at(t_ns: int, primary: Any, a: ImageModel, secondary: Any, b: ImageModel) -> Any:
+        return system.bridge(
+            t_ns,
+            primary,
+            secondary,
+            sigma_scales=(a.sigma_scale, b.sigma_scale),
+            disparities=(a.disparity, b.disparity),
+        )
+
     if bridge is None:
-        return system.track(frame.t_ns, *features, sigma_scale=here), "none"
+        return track(features, here), "none"
     images, other = bridge
-    there = scale(images.bias)
+    there = model(images.bias, images.warp_depth_m)
     if images.index < frame.index and last is not None and last[0] == images.index:
-        b = system.bridge(images.t_ns, last[1], other, sigma_scales=(last[2], there))
-        return system.track(frame.t_ns, *features, sigma_scale=here), "refused" if b is None else "inserted"
+        b = bridge_at(images.t_ns, last[1], last[2], other, there)
+        return track(features, here), "refused" if b is None else "inserted"
     if images.index == frame.index:
-        r = system.track(frame.t_ns, *other, sigma_scale=there)
+        r = track(other, there)
         if r.state == "lost":
             return r, "refused"
-        b = system.bridge(frame.t_ns, other, features, sigma_scales=(there, here))
+        b = bridge_at(frame.t_ns, other, there, features, here)
         return r, "refused" if b is None else "inserted"
-    return system.track(frame.t_ns, *features, sigma_scale=here), "none"
+    return track(features, here), "none"

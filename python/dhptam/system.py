@@ -41,6 +41,12 @@ def _sigmas(features: FeatureSet) -> NDArray[np.float32] | None:
     return getattr(features, "sigmas", None)
 
 
+def _disparity(correction: tuple[float, float]) -> tuple[float, float]:
+    """A ``(scale, offset_px)`` disparity correction as the binding takes it."""
+    scale, offset = correction
+    return float(scale), float(offset)
+
+
 @dataclass(frozen=True)
 class StereoCalibration:
     """Rectified stereo calibration: left intrinsics (pixels), baseline (metres), image size."""
@@ -101,9 +107,20 @@ class System:
         self.calibration = calibration
         self._core = _core.PySystem(c.fx, c.fy, c.cx, c.cy, c.baseline_m, c.width, c.height, config, threaded)
 
-    def track(self, t_ns: int, left: FeatureSet, right: FeatureSet, sigma_scale: float = 1.0) -> TrackResult:
+    def track(
+        self,
+        t_ns: int,
+        left: FeatureSet,
+        right: FeatureSet,
+        sigma_scale: float = 1.0,
+        disparity: tuple[float, float] = (1.0, 0.0),
+    ) -> TrackResult:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds; ``sigma_scale``
-        multiplies every keypoint σ of the frame (e.g. an event-dominated image)."""
+        multiplies every keypoint σ of the frame (e.g. an event-dominated image).
+        ``disparity`` ``(scale, offset_px)`` maps each stereo match's disparity ``d`` to the
+        frame cameras' ``scale · d + offset_px``: identity for frames, and
+        :meth:`dhptam.frontend.Frontend.event_disparity` for event images warped into the
+        frame cameras (their disparity follows the event cameras' baseline)."""
         return _track_result(
             t_ns,
             self._core.track(
@@ -114,6 +131,7 @@ class System:
                 right.descriptors,
                 _sigmas(left),
                 float(sigma_scale),
+                _disparity(disparity),
             ),
         )
 
@@ -133,6 +151,7 @@ class System:
         primary: tuple[FeatureSet, FeatureSet],
         other: tuple[FeatureSet, FeatureSet],
         sigma_scales: tuple[float, float] = (1.0, 1.0),
+        disparities: tuple[tuple[float, float], tuple[float, float]] = ((1.0, 0.0), (1.0, 0.0)),
     ) -> BridgeResult | None:
         """Inserts a bridge keyframe at the last tracked frame (taken at ``t_ns``) across a
         change of image appearance, e.g. the fusion switching between frame- and
@@ -145,7 +164,8 @@ class System:
         map points and adds the other image's stereo points, so the next frames, which look
         like ``other``, track against it and the map stays one piece. ``None`` when refused:
         the last frame is not at ``t_ns``, was lost, or too few primary features matched.
-        ``sigma_scales`` multiply the keypoint σ of ``primary`` and ``other``.
+        ``sigma_scales`` multiply the keypoint σ of ``primary`` and ``other``;
+        ``disparities`` are their disparity corrections (see :meth:`track`).
         """
         (pl, pr), (ol, orr) = primary, other
         r = self._core.bridge(
@@ -153,6 +173,7 @@ class System:
             pl.keypoints, pl.descriptors, pr.keypoints, pr.descriptors,
             ol.keypoints, ol.descriptors, orr.keypoints, orr.descriptors,
             _sigmas(pl), _sigmas(ol), float(sigma_scales[0]), float(sigma_scales[1]),
+            _disparity(disparities[0]), _disparity(disparities[1]),
         )  # fmt: skip
         if r is None:
             return None

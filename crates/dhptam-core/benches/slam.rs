@@ -23,7 +23,9 @@ use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
 use dhptam_core::slam::tracking::{
     last_pose, stereo_match, track_local_map, StereoFrame, TrackContext,
 };
-use dhptam_core::slam::{fuse_and_refind, local_mapping, FrameFeatures, Map, System};
+use dhptam_core::slam::{
+    fuse_and_refind, local_mapping, DisparityCorrection, FrameFeatures, Map, System,
+};
 
 fn track(system: &mut System, f: &SyntheticFrame) {
     let left = FrameFeatures {
@@ -31,12 +33,14 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
         sigmas: None,
         sigma_scale: 1.0,
+        disparity: DisparityCorrection::IDENTITY,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
         descriptors: Descriptors::float(&f.right.descriptors, 32).unwrap(),
         sigmas: None,
         sigma_scale: 1.0,
+        disparity: DisparityCorrection::IDENTITY,
     };
     system.track(f.t_ns, left, right).unwrap();
 }

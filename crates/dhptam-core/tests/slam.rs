@@ -9,7 +9,9 @@ use dhptam_core::matching::Descriptors;
 use dhptam_core::slam::loop_closing::verify_loop;
 use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
 use dhptam_core::slam::tracking::{insert_keyframe, stereo_match, StereoFrame};
-use dhptam_core::slam::{fuse_and_refind, FrameFeatures, Map, System, TrackResult, TrackState};
+use dhptam_core::slam::{
+    fuse_and_refind, DisparityCorrection, FrameFeatures, Map, System, TrackResult, TrackState,
+};
 use nalgebra::Vector3;
 
 mod common;
@@ -154,6 +156,7 @@ fn threaded_stress_and_prompt_shutdown() {
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
         sigmas: None,
         sigma_scale: 1.0,
+        disparity: DisparityCorrection::IDENTITY,
     };
     assert!(system.track(f.t_ns, left, left).is_err());
 }
@@ -607,12 +610,14 @@ fn features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
             descriptors: Descriptors::float(&f.left.descriptors, dim).unwrap(),
             sigmas: None,
             sigma_scale: 1.0,
+            disparity: DisparityCorrection::IDENTITY,
         },
         FrameFeatures {
             keypoints: &f.right.keypoints,
             descriptors: Descriptors::float(&f.right.descriptors, dim).unwrap(),
             sigmas: None,
             sigma_scale: 1.0,
+            disparity: DisparityCorrection::IDENTITY,
         },
     )
 }
@@ -821,4 +826,57 @@ fn a_bridge_spans_predicted_frames() {
         .collect();
     let error = ate(&positions(&system.trajectory()), &truth);
     assert!(error < 0.03, "ATE {error} m");
+}
+
+/// Issue 8, event images warped into the frame cameras: a disparity correction with scale
+/// 1/2 reads every stereo match as twice as far, and a bad correction is refused by name.
+#[test]
+fn disparity_correction_scales_the_stereo_depths() {
+    let o = SyntheticOptions {
+        frames: 1,
+        seed: 8,
+        ..Default::default()
+    };
+    let f = &generate(&o)[0];
+    let median_depth = |disparity: DisparityCorrection| {
+        let mut system = System::new(o.calib, Config::default(), false).unwrap();
+        let features = |kp: &'static str| {
+            let side = if kp == "left" { &f.left } else { &f.right };
+            FrameFeatures {
+                keypoints: &side.keypoints,
+                descriptors: Descriptors::float(&side.descriptors, 32).unwrap(),
+                sigmas: None,
+                sigma_scale: 1.0,
+                disparity,
+            }
+        };
+        let r = system.track(f.t_ns, features("left"), features("right"))?;
+        assert_eq!(r.state, TrackState::Initialised);
+        let mut z: Vec<f64> = system.map_points().iter().map(|p| p[2]).collect();
+        z.sort_by(f64::total_cmp);
+        Ok::<f64, dhptam_core::error::Error>(z[z.len() / 2])
+    };
+    let plain = median_depth(DisparityCorrection::IDENTITY).unwrap();
+    let halved = median_depth(DisparityCorrection {
+        scale: 0.5,
+        offset_px: 0.0,
+    })
+    .unwrap();
+    assert!((halved / plain - 2.0).abs() < 0.05, "{plain} -> {halved}");
+    let err = median_depth(DisparityCorrection {
+        scale: 0.0,
+        offset_px: 0.0,
+    })
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("left.disparity"), "{err}");
+    // The arithmetic: scale · (u_left − u_right) + offset, NaN when not positive.
+    let c = DisparityCorrection {
+        scale: 0.9,
+        offset_px: 0.5,
+    };
+    assert!((c.apply(100.0, 90.0) - (100.0 - 9.5)).abs() < 1e-5);
+    assert!(c.apply(100.0, 101.0).is_nan());
+    assert!(c.apply(100.0, f32::NAN).is_nan());
+    assert_eq!(DisparityCorrection::IDENTITY.apply(100.0, 101.0), 101.0);
 }

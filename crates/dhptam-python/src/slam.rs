@@ -7,7 +7,9 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 
 use dhptam_core::geometry::Se3;
-use dhptam_core::slam::{FrameFeatures, StereoCalibration, System, TrackResult};
+use dhptam_core::slam::{
+    DisparityCorrection, FrameFeatures, StereoCalibration, System, TrackResult,
+};
 use numpy::ndarray::{Array1, Array3};
 use numpy::{
     IntoPyArray, PyArray1, PyArray2, PyArray3, PyReadonlyArray1, PyReadonlyArray2,
@@ -49,6 +51,7 @@ fn features<'a>(
     descriptors: &'a DescriptorArray<'_>,
     sigmas: Option<&'a PyReadonlyArray1<'_, f32>>,
     sigma_scale: f32,
+    disparity: (f32, f32),
 ) -> PyResult<FrameFeatures<'a>> {
     Ok(FrameFeatures {
         keypoints: keypoints
@@ -62,6 +65,10 @@ fn features<'a>(
             })
             .transpose()?,
         sigma_scale,
+        disparity: DisparityCorrection {
+            scale: disparity.0,
+            offset_px: disparity.1,
+        },
     })
 }
 
@@ -143,10 +150,11 @@ impl PySystem {
 
     /// Tracks one frame; returns (pose (4, 4) world_from_cam, state, inliers, keyframe).
     /// `left_sigmas`: the left keypoints' σ in pixels (None: 1 each); `sigma_scale`: a
-    /// factor on all of them (e.g. an event-dominated image).
+    /// factor on all of them (e.g. an event-dominated image); `disparity`: (scale, offset px)
+    /// mapping the pair's stereo disparities to the frame cameras' (event images).
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
-        left_sigmas=None, sigma_scale=1.0
+        left_sigmas=None, sigma_scale=1.0, disparity=(1.0, 0.0)
     ))]
     #[allow(clippy::too_many_arguments)]
     fn track<'py>(
@@ -159,14 +167,15 @@ impl PySystem {
         right_descriptors: &Bound<'py, PyAny>,
         left_sigmas: Option<&Bound<'py, PyAny>>,
         sigma_scale: f32,
+        disparity: (f32, f32),
     ) -> PyResult<TrackTuple<'py>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
         let ls = sigmas(left_sigmas, "left.sigmas")?;
-        let left = features(&lk, &ld, ls.as_ref(), sigma_scale)?;
-        let right = features(&rk, &rd, None, sigma_scale)?;
+        let left = features(&lk, &ld, ls.as_ref(), sigma_scale, disparity)?;
+        let right = features(&rk, &rd, None, sigma_scale, disparity)?;
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
@@ -185,13 +194,15 @@ impl PySystem {
     /// Bridge keyframe at the last tracked frame `t_ns` (see `dhptam.System.bridge`):
     /// `primary` features are the image that frame was tracked with, `other` the same data
     /// rendered the other way; `left_sigmas`/`other_left_sigmas` their left keypoints' σ
-    /// (None: 1 each), `sigma_scale`/`other_sigma_scale` factors on them. Returns (keyframe id, re-matched map points, points from the other
-    /// image), or None when refused.
+    /// (None: 1 each), `sigma_scale`/`other_sigma_scale` factors on them,
+    /// `disparity`/`other_disparity` their disparity corrections (see `track`). Returns
+    /// (keyframe id, re-matched map points, points from the other image), or None when
+    /// refused.
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
         other_left_keypoints, other_left_descriptors, other_right_keypoints,
         other_right_descriptors, left_sigmas=None, other_left_sigmas=None, sigma_scale=1.0,
-        other_sigma_scale=1.0
+        other_sigma_scale=1.0, disparity=(1.0, 0.0), other_disparity=(1.0, 0.0)
     ))]
     #[allow(clippy::too_many_arguments)]
     fn bridge<'py>(
@@ -210,6 +221,8 @@ impl PySystem {
         other_left_sigmas: Option<&Bound<'py, PyAny>>,
         sigma_scale: f32,
         other_sigma_scale: f32,
+        disparity: (f32, f32),
+        other_disparity: (f32, f32),
     ) -> PyResult<Option<(u64, usize, usize)>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
@@ -222,12 +235,12 @@ impl PySystem {
         let ls = sigmas(left_sigmas, "left.sigmas")?;
         let ols = sigmas(other_left_sigmas, "other_left.sigmas")?;
         let primary = (
-            features(&lk, &ld, ls.as_ref(), sigma_scale)?,
-            features(&rk, &rd, None, sigma_scale)?,
+            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity)?,
+            features(&rk, &rd, None, sigma_scale, disparity)?,
         );
         let other = (
-            features(&olk, &old, ols.as_ref(), other_sigma_scale)?,
-            features(&ork, &ord, None, other_sigma_scale)?,
+            features(&olk, &old, ols.as_ref(), other_sigma_scale, other_disparity)?,
+            features(&ork, &ord, None, other_sigma_scale, other_disparity)?,
         );
         let b = py
             .detach_guarded("slam::bridge", || {

@@ -27,7 +27,9 @@ use crate::solver::StereoIntrinsics;
 pub use map::{FrameRecord, Keyframe, Map, MapPoint, Redirect};
 pub use mapping::{cull_keyframes, keyframes_at_place, redundancy, replaced_horizon, CullReport};
 pub use mapping::{fuse_and_refind, local_mapping, FusionReport, MappingReport};
-pub use system::{FrameFeatures, FusionTotals, StageStats, System, TrackingTotals};
+pub use system::{
+    DisparityCorrection, FrameFeatures, FusionTotals, StageStats, System, TrackingTotals,
+};
 pub use tracking::Bridge;
 
 /// Calibration of the rectified stereo pair: left intrinsics, baseline and image size.

@@ -6,7 +6,7 @@
 use dhptam_core::geometry::Se3;
 use dhptam_core::matching::Descriptors;
 use dhptam_core::slam::synthetic::SyntheticFrame;
-use dhptam_core::slam::{FrameFeatures, System, TrackResult};
+use dhptam_core::slam::{DisparityCorrection, FrameFeatures, System, TrackResult};
 use nalgebra::{Matrix3, Vector3};
 
 /// Tracks one synthetic frame (32-float descriptors).
@@ -16,12 +16,14 @@ pub fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
         descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
         sigmas: None,
         sigma_scale: 1.0,
+        disparity: DisparityCorrection::IDENTITY,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
         descriptors: Descriptors::float(&f.right.descriptors, 32).unwrap(),
         sigmas: None,
         sigma_scale: 1.0,
+        disparity: DisparityCorrection::IDENTITY,
     };
     system.track(f.t_ns, left, right).unwrap()
 }
