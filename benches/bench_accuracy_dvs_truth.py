@@ -42,9 +42,9 @@ def _map_after_each_frame(log: list[tuple[int, bool, Any, Any, Any, Any]]) -> It
 
     original = system.System.track
 
-    def track(self: Any, t_ns: int, left: Any, right: Any) -> Any:
+    def track(self: Any, t_ns: int, left: Any, right: Any, **how: Any) -> Any:
         before = self.map_points()
-        result = original(self, t_ns, left, right)
+        result = original(self, t_ns, left, right, **how)
         kt, kp = self.keyframe_trajectory()
         log.append((int(t_ns), bool(result.keyframe), before, self.map_points(), kt, kp))
         return result
