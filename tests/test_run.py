@@ -55,6 +55,9 @@ def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: P
     header = (tmp_path / "map.ply").read_bytes()[:200]
     assert header.startswith(b"ply") and f"element vertex {result.map_points}".encode() in header
     assert "done: 24 frames" in (tmp_path / "run.log").read_text()
+    # After the last frame the whole map is bundle-adjusted once ([mapping] final_ba_iterations).
+    assert timing["backend"]["global_ba"]["count"] == 1
+    assert "whole-map bundle adjustment" in (tmp_path / "run.log").read_text()
     assert timing["tracking"] == result.tracking
     csv_header, *rows = (tmp_path / "frames.csv").read_text().splitlines()
     column = csv_header.split(",").index("bridge")

@@ -457,6 +457,10 @@ def _finish(
     reference: Any,
 ) -> None:
     _uninterrupted(system.shutdown, result, "stopping the back-end")
+    iterations = int(frontend.config.to_dict()["mapping"]["final_ba_iterations"])
+    if iterations > 0 and result.error is None and not result.interrupted:
+        # The whole-map bundle adjustment (`[mapping] final_ba_iterations`); the core logs it.
+        system.refine_map(iterations)
     _uninterrupted(frontend.close, result, "closing the front-end")
     result.frames = outputs.count
     result.states = dict(states)

@@ -220,6 +220,16 @@ class System:
         """Replaces the map and tracker state with a saved one (same calibration)."""
         self._core.load_map(path)
 
+    def refine_map(self, iterations: int = 20) -> dict[str, int]:
+        """Bundle adjustment of the whole map after the last frame: every keyframe and map
+        point, the first keyframe of each map segment held fixed, ``iterations``
+        Levenberg–Marquardt iterations; outlier observations are removed. The trajectory
+        (stored relative to keyframes) follows. Returns the counts ``optimised`` and
+        ``fixed`` keyframes, ``points``, ``outliers_removed`` and ``culled`` points. Best
+        called after :meth:`shutdown` (with mapping still running, a loop correction made
+        meanwhile discards the result)."""
+        return self._core.refine_map(int(iterations))
+
     def shutdown(self) -> None:
         """Stops mapping (queued keyframes are dropped); later ``track`` calls raise."""
         self._core.shutdown()

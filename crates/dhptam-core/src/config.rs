@@ -440,6 +440,12 @@ config_section! {
         /// ORB-SLAM uses 0.25 (per frame rather than per keyframe).
         min_found_ratio: f64 = 0.0,
         // --- end culling ---
+        /// Levenberg–Marquardt iterations of the bundle adjustment of the whole map that
+        /// `dhptam run` does after the last frame (`System::refine_map`: every keyframe and
+        /// point, the first keyframe of each map segment held); the written trajectory, map and
+        /// keyframes are those after it (a few tens of ms on the simulator's 4 s sequences;
+        /// docs/BENCHMARKS.md, "whole-map bundle adjustment"). 0 turns it off.
+        final_ba_iterations: u32 = 20,
     }
 }
 

@@ -880,3 +880,81 @@ fn disparity_correction_scales_the_stereo_depths() {
     assert!(c.apply(100.0, f32::NAN).is_nan());
     assert_eq!(DisparityCorrection::IDENTITY.apply(100.0, 101.0), 101.0);
 }
+
+/// The whole-map bundle adjustment pulls a map whose keyframes and points were all knocked
+/// off (2 cm, 0.5°) back to where tracking had them, holding the first keyframe and every
+/// segment start fixed.
+#[test]
+fn global_bundle_adjustment_undoes_a_perturbation_of_the_whole_map() {
+    use dhptam_core::slam::global_bundle_adjustment;
+    use std::sync::RwLock;
+    let o = SyntheticOptions {
+        frames: 120,
+        turns: 0.3,
+        seed: 12,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let config = Config::default();
+    let mut system = System::new(o.calib, config.clone(), false).unwrap();
+    frames.iter().for_each(|f| {
+        track(&mut system, f);
+    });
+    let tracked: Map = system.with_map(|m| m.clone());
+    let ids: Vec<u64> = tracked.keyframes.keys().copied().collect();
+    assert!(ids.len() >= 8, "{} keyframes", ids.len());
+    let (first, anchor) = (ids[0], ids[ids.len() / 2]);
+    let mut map = tracked.clone();
+    map.segment_starts.insert(anchor);
+    let mut rng = 7u64;
+    let mut noise = || {
+        // xorshift: reproducible without a random-number crate in this test.
+        rng ^= rng << 13;
+        rng ^= rng >> 7;
+        rng ^= rng << 17;
+        (rng % 2001) as f64 / 1000.0 - 1.0
+    };
+    for (id, k) in map.keyframes.iter_mut() {
+        if *id != first && *id != anchor {
+            let kick = Se3::new(
+                So3::exp(&(Vector3::new(noise(), noise(), noise()) * 0.5f64.to_radians())),
+                Vector3::new(noise(), noise(), noise()) * 0.02,
+            );
+            k.world_from_cam = k.world_from_cam * kick;
+        }
+    }
+    for p in map.points.values_mut() {
+        p.position += Vector3::new(noise(), noise(), noise()) * 0.02;
+    }
+    let offset = |m: &Map| {
+        let sum: f64 = ids
+            .iter()
+            .map(|id| (m.keyframes[id].centre() - tracked.keyframes[id].centre()).norm_squared())
+            .sum();
+        (sum / ids.len() as f64).sqrt()
+    };
+    let before = offset(&map);
+    let shared = RwLock::new(map);
+    let report = global_bundle_adjustment(
+        &shared,
+        &o.calib,
+        &config.tracking,
+        &config.triangulation,
+        20,
+        None,
+    )
+    .unwrap();
+    let map = shared.into_inner().unwrap();
+    let after = offset(&map);
+    eprintln!("keyframe centres off by {before:.4} m before, {after:.4} m after: {report:?}");
+    assert_eq!((report.fixed, report.optimised), (2, ids.len() - 2));
+    assert_eq!(report.points, tracked.points.len());
+    assert!(before > 0.01 && after < 0.1 * before, "{before} -> {after}");
+    for id in [first, anchor] {
+        assert_eq!(
+            map.keyframes[&id].world_from_cam,
+            tracked.keyframes[&id].world_from_cam
+        );
+    }
+    assert_eq!(map.check_invariants(), Vec::<String>::new());
+}

@@ -330,6 +330,24 @@ impl PySystem {
             .py()
     }
 
+    /// Bundle adjustment of the whole map (every keyframe and point; the first keyframe of
+    /// each map segment held) with `iterations` iterations, for after the last frame;
+    /// returns {optimised, fixed, points, outliers_removed, culled}.
+    fn refine_map<'py>(&self, py: Python<'py>, iterations: u32) -> PyResult<Bound<'py, PyDict>> {
+        let r = py
+            .detach_guarded("slam::refine_map", || {
+                self.with(|s| s.refine_map(iterations))
+            })?
+            .py()?;
+        let d = PyDict::new(py);
+        d.set_item("optimised", r.optimised)?;
+        d.set_item("fixed", r.fixed)?;
+        d.set_item("points", r.points)?;
+        d.set_item("outliers_removed", r.outliers_removed)?;
+        d.set_item("culled", r.culled)?;
+        Ok(d)
+    }
+
     /// Stops the worker threads; later `track` calls raise.
     fn shutdown(&self, py: Python<'_>) -> PyResult<()> {
         py.detach_guarded("slam::shutdown", || self.with(|s| s.shutdown()))

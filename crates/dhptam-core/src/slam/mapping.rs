@@ -50,19 +50,18 @@ pub fn local_mapping(
     tri: &TriangulationConfig,
     stop: Option<&AtomicBool>,
 ) -> Result<MappingReport> {
-    let mut report = MappingReport::default();
-    // 1. Gather the window under a read lock.
-    let (kf_ids, mut kfs, point_ids, mut points, observations, epoch) = {
+    // 1. The window: `kf`, its best covisible keyframes, and the older keyframes observing
+    // most of their points, held fixed.
+    let (local, keyframes) = {
         let m = read_lock(map);
         let Some(k) = m.keyframes.get(&kf) else {
-            return Ok(report);
+            return Ok(MappingReport::default());
         };
         let mut local: Vec<u64> = vec![kf];
         local.extend(k.best_covisible(cfg.window.saturating_sub(1) as usize));
         let local_set: BTreeSet<u64> = local.iter().copied().collect();
-        let point_ids = m.points_of(&local);
         let mut fixed_count: BTreeMap<u64, usize> = BTreeMap::new();
-        for p in &point_ids {
+        for p in &m.points_of(&local) {
             for o in m.points[p].observations.keys() {
                 if !local_set.contains(o) {
                     *fixed_count.entry(*o).or_insert(0) += 1;
@@ -72,20 +71,172 @@ pub fn local_mapping(
         let mut fixed: Vec<(u64, usize)> = fixed_count.into_iter().collect();
         fixed.sort_by(|a, b| b.1.cmp(&a.1).then(b.0.cmp(&a.0)));
         fixed.truncate(cfg.max_fixed as usize);
-        let mut kf_ids: Vec<u64> = local.clone();
-        kf_ids.extend(fixed.iter().map(|f| f.0));
-        let mut kfs: Vec<BaKeyframe> = kf_ids
+        // Without an older observer the oldest window keyframe is held to fix the gauge.
+        let anchor = fixed
+            .is_empty()
+            .then(|| local.iter().copied().min())
+            .flatten();
+        let mut keyframes: Vec<(u64, bool)> =
+            local.iter().map(|&id| (id, Some(id) == anchor)).collect();
+        keyframes.extend(fixed.iter().map(|f| (f.0, true)));
+        (local, keyframes)
+    };
+    // 2. Bundle adjustment of the window, outlier observations removed.
+    let Some(adjusted) = adjust(
+        map,
+        &keyframes,
+        &local,
+        calib,
+        tracking,
+        tri,
+        cfg.ba_iterations,
+        stop,
+        &format!("keyframe {kf}"),
+    )?
+    else {
+        return Ok(MappingReport::default());
+    };
+    let Adjusted {
+        mut report,
+        point_ids,
+        mut m,
+    } = adjusted;
+    let window: Vec<u64> = keyframes
+        .iter()
+        .filter(|(_, held)| !held)
+        .map(|(id, _)| *id)
+        .collect();
+    // 3. Cull points observed by too few keyframes once they had the chance to be seen, and
+    // points the window's keyframes rarely find where they predict them.
+    for id in &point_ids {
+        let Some(p) = m.points.get(id) else {
+            continue;
+        };
+        let old = kf.saturating_sub(p.first_keyframe) >= cfg.cull_after_keyframes as u64;
+        let unfound = old && rarely_found(&m, *id, &window, calib, tracking, tri, cfg);
+        if p.observations.is_empty()
+            || (old && p.observations.len() < cfg.min_observers as usize)
+            || unfound
+        {
+            m.remove_point(*id);
+            report.culled += 1;
+            report.culled_unfound += unfound as usize;
+        } else {
+            m.update_normal(*id);
+        }
+    }
+    m.prune_replaced(replaced_horizon(cfg));
+    log::debug!("mapping: keyframe {kf}: {report:?}");
+    Ok(report)
+}
+
+/// Bundle adjustment of the whole map: every keyframe and every point, the first keyframe of
+/// the map and of each map segment not joined to it yet held fixed (one gauge per segment),
+/// `iterations` Levenberg–Marquardt iterations (the local windows' Huber loss and outlier
+/// bound); outlier observations are removed, and points left without any observation with
+/// them. After the last frame of a run ([`super::System::refine_map`]) it spreads what loop
+/// closing's pose graph and the local windows could not: every observation of every point
+/// weighs on every keyframe at once.
+pub fn global_bundle_adjustment(
+    map: &RwLock<Map>,
+    calib: &StereoCalibration,
+    tracking: &TrackingConfig,
+    tri: &TriangulationConfig,
+    iterations: u32,
+    stop: Option<&AtomicBool>,
+) -> Result<MappingReport> {
+    let (keyframes, all) = {
+        let m = read_lock(map);
+        let first = m.keyframes.keys().next().copied();
+        let keyframes: Vec<(u64, bool)> = m
+            .keyframes
+            .keys()
+            .map(|&id| (id, Some(id) == first || m.segment_starts.contains(&id)))
+            .collect();
+        let all: Vec<u64> = m.keyframes.keys().copied().collect();
+        (keyframes, all)
+    };
+    let Some(Adjusted {
+        mut report,
+        point_ids,
+        mut m,
+    }) = adjust(
+        map,
+        &keyframes,
+        &all,
+        calib,
+        tracking,
+        tri,
+        iterations,
+        stop,
+        "whole map",
+    )?
+    else {
+        return Ok(MappingReport::default());
+    };
+    for id in &point_ids {
+        match m.points.get(id) {
+            Some(p) if p.observations.is_empty() => {
+                m.remove_point(*id);
+                report.culled += 1;
+            }
+            Some(_) => m.update_normal(*id),
+            None => {}
+        }
+    }
+    log::info!(
+        "mapping: whole-map bundle adjustment: {} keyframes ({} fixed), {} points, {} outlier observations removed",
+        report.optimised + report.fixed,
+        report.fixed,
+        report.points,
+        report.outliers_removed
+    );
+    Ok(report)
+}
+
+/// What [`adjust`] leaves to its caller: the report so far, the points of the problem, and
+/// the map, still write-locked, with the result written back.
+struct Adjusted<'a> {
+    report: MappingReport,
+    point_ids: Vec<u64>,
+    m: std::sync::RwLockWriteGuard<'a, Map>,
+}
+
+/// Stereo bundle adjustment of `keyframes` (id, held fixed) and the points of the keyframes
+/// `point_keyframes`, with every observation of them by `keyframes`: gathered under a read
+/// lock, solved without a lock, written back under the write lock (keyframes and points
+/// removed meanwhile skipped) with the outlier observations removed. `None` when there is
+/// nothing to optimise or a loop correction intervened (the result is then discarded,
+/// logged with `what`).
+#[allow(clippy::too_many_arguments)]
+fn adjust<'a>(
+    map: &'a RwLock<Map>,
+    keyframes: &[(u64, bool)],
+    point_keyframes: &[u64],
+    calib: &StereoCalibration,
+    tracking: &TrackingConfig,
+    tri: &TriangulationConfig,
+    iterations: u32,
+    stop: Option<&AtomicBool>,
+    what: &str,
+) -> Result<Option<Adjusted<'a>>> {
+    let mut report = MappingReport::default();
+    let (kf_ids, mut kfs, point_ids, mut points, observations, epoch) = {
+        let m = read_lock(map);
+        let present: Vec<(u64, bool)> = keyframes
             .iter()
-            .map(|id| BaKeyframe {
+            .copied()
+            .filter(|(id, _)| m.keyframes.contains_key(id))
+            .collect();
+        let point_ids = m.points_of(point_keyframes);
+        let kf_ids: Vec<u64> = present.iter().map(|(id, _)| *id).collect();
+        let kfs: Vec<BaKeyframe> = present
+            .iter()
+            .map(|(id, held)| BaKeyframe {
                 cam_from_world: m.keyframes[id].world_from_cam.inverse(),
-                fixed: !local_set.contains(id),
+                fixed: *held,
             })
             .collect();
-        if fixed.is_empty() {
-            // No older observer: hold the oldest window keyframe to fix the gauge.
-            let oldest = (0..kf_ids.len()).min_by_key(|&i| kf_ids[i]).unwrap_or(0);
-            kfs[oldest].fixed = true;
-        }
         let kf_index: BTreeMap<u64, usize> =
             kf_ids.iter().enumerate().map(|(i, &id)| (id, i)).collect();
         let points: Vec<Vector3<f64>> = point_ids.iter().map(|p| m.points[p].position).collect();
@@ -113,16 +264,15 @@ pub fn local_mapping(
     report.optimised = kfs.len() - report.fixed;
     report.points = points.len();
     if observations.is_empty() || report.optimised == 0 {
-        return Ok(report);
+        return Ok(None);
     }
-    // 2. Solve without holding the lock.
     let options = StereoBaOptions {
         loss: Loss::Huber(tracking.huber_px),
         min_depth: tri.min_depth_m.max(1e-6),
         outlier_threshold_sq: tracking.huber_px * tracking.huber_px,
         threads: 1,
         lm: LmOptions {
-            max_iterations: cfg.ba_iterations as usize,
+            max_iterations: iterations as usize,
             ..Default::default()
         },
     };
@@ -135,11 +285,10 @@ pub fn local_mapping(
         stop,
     )?;
     report.interrupted = result.report.termination == Termination::Interrupted;
-    // 3. Write back under the write lock (keyframes or points removed meanwhile are skipped).
     let mut m = write_lock(map);
     if m.corrections != epoch {
-        log::info!("mapping: keyframe {kf}: a loop correction intervened; result discarded");
-        return Ok(report);
+        log::info!("mapping: {what}: a loop correction intervened; result discarded");
+        return Ok(None);
     }
     for (id, k) in kf_ids.iter().zip(&kfs) {
         if !k.fixed {
@@ -159,34 +308,11 @@ pub fn local_mapping(
             report.outliers_removed += 1;
         }
     }
-    // 4. Cull points observed by too few keyframes once they had the chance to be seen, and
-    // points the window's keyframes rarely find where they predict them.
-    let window: Vec<u64> = kf_ids
-        .iter()
-        .zip(&kfs)
-        .filter(|(_, k)| !k.fixed)
-        .map(|(id, _)| *id)
-        .collect();
-    for id in &point_ids {
-        let Some(p) = m.points.get(id) else {
-            continue;
-        };
-        let old = kf.saturating_sub(p.first_keyframe) >= cfg.cull_after_keyframes as u64;
-        let unfound = old && rarely_found(&m, *id, &window, calib, tracking, tri, cfg);
-        if p.observations.is_empty()
-            || (old && p.observations.len() < cfg.min_observers as usize)
-            || unfound
-        {
-            m.remove_point(*id);
-            report.culled += 1;
-            report.culled_unfound += unfound as usize;
-        } else {
-            m.update_normal(*id);
-        }
-    }
-    m.prune_replaced(replaced_horizon(cfg));
-    log::debug!("mapping: keyframe {kf}: {report:?}");
-    Ok(report)
+    Ok(Some(Adjusted {
+        report,
+        point_ids,
+        m,
+    }))
 }
 
 /// How many keyframes back [`Map::replaced`] entries are kept: a reader holds point ids for

@@ -26,7 +26,9 @@ use crate::solver::StereoIntrinsics;
 
 pub use map::{FrameRecord, Keyframe, Map, MapPoint, Redirect};
 pub use mapping::{cull_keyframes, keyframes_at_place, redundancy, replaced_horizon, CullReport};
-pub use mapping::{fuse_and_refind, local_mapping, FusionReport, MappingReport};
+pub use mapping::{
+    fuse_and_refind, global_bundle_adjustment, local_mapping, FusionReport, MappingReport,
+};
 pub use system::{
     DisparityCorrection, FrameFeatures, FusionTotals, StageStats, System, TrackingTotals,
 };

@@ -766,6 +766,25 @@ impl System {
         }
     }
 
+    /// Bundle adjustment of the whole map ([`super::global_bundle_adjustment`]) with
+    /// `iterations` Levenberg–Marquardt iterations, for after the last frame (e.g. after
+    /// [`System::shutdown`]; while the mapping threads still run, a loop correction made
+    /// meanwhile discards the result). Timed as stage `global_ba`.
+    pub fn refine_map(&self, iterations: u32) -> Result<super::MappingReport> {
+        let shared = &self.shared;
+        let c = &shared.config;
+        shared.time("global_ba", || {
+            super::global_bundle_adjustment(
+                &shared.map,
+                &shared.calib,
+                &c.tracking,
+                &c.triangulation,
+                iterations,
+                None,
+            )
+        })
+    }
+
     /// Timestamps and `world_from_cam` of every tracked frame, in order; predicted frames
     /// between two measured ones are interpolated between them ([`Map::trajectory_poses`]).
     pub fn trajectory(&self) -> Vec<(i64, Se3)> {
