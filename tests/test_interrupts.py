@@ -131,6 +131,25 @@ def test_sigint_to_the_command_exits_130_and_keeps_the_outputs(sim_desk_run: Pat
     assert len(read_tum(out / "trajectory.tum")[0]) == timing["frames"] <= 24
 
 
+def test_a_ctrl_c_after_the_last_check_of_the_loop_is_not_lost() -> None:
+    """The deferred SIGINT handler of the tracking loop: a Ctrl-C that arrives after the loop's
+    last check (while its threads are being closed) still interrupts when the block ends; a
+    block without one ends normally."""
+    from dhptam.run import _interrupts_between_frames
+
+    with _interrupts_between_frames() as pending:
+        assert not pending()
+
+    def ctrl_c_after_the_last_check() -> None:
+        with _interrupts_between_frames() as pending:
+            signal.raise_signal(signal.SIGINT)  # deferred: only sets the flag
+            assert pending()
+
+    with pytest.raises(KeyboardInterrupt):
+        ctrl_c_after_the_last_check()
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
 # -- panics ----------------------------------------------------------------------------------------
 
 

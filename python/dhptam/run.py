@@ -734,8 +734,10 @@ def _interrupts_between_frames() -> Iterator[Callable[[], bool]]:
     The first SIGINT only sets a flag, which the loop checks before each frame (and once after
     the last), so a frame is either tracked and recorded or not started: the trajectory and
     ``frames.csv`` always hold the same frames (the handler does nothing else: no logging
-    from inside a signal handler). A second SIGINT interrupts at once. Off the
-    main thread, or when the caller installed its own SIGINT handler, nothing changes.
+    from inside a signal handler). A second SIGINT interrupts at once. One that comes after
+    the loop's last check, while the loop's threads are closed, is raised when the block
+    ends. Off the main thread, or when the caller installed its own SIGINT handler, nothing
+    changes.
     """
     pending = [False]
     if (
@@ -755,6 +757,10 @@ def _interrupts_between_frames() -> Iterator[Callable[[], bool]]:
         yield lambda: pending[0]
     finally:
         signal.signal(signal.SIGINT, previous)
+    if pending[0]:
+        # A Ctrl-C after the loop's last check (while its threads were being closed) is not
+        # lost: it takes effect here, as one between two frames would.
+        raise KeyboardInterrupt
 
 
 def _track_bridged(
