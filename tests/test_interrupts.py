@@ -89,6 +89,17 @@ def test_ctrl_c_while_the_backend_stops(
     _check_outputs(tmp_path, 10)
 
 
+def test_ctrl_c_during_the_whole_map_bundle_adjustment(
+    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The interrupt lands while the map is adjusted after the last frame: everything is still
+    written, and the run is marked interrupted."""
+    _interrupt_on_call(monkeypatch, dhptam.system.System, "refine_map", 1)
+    result = run(sim_desk_run, tmp_path, mode="frames", progress=False, max_frames=10)
+    assert result.interrupted
+    _check_outputs(tmp_path, 10)
+
+
 def test_ctrl_c_while_the_outputs_are_written(
     sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

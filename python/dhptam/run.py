@@ -460,7 +460,12 @@ def _finish(
     iterations = int(frontend.config.to_dict()["mapping"]["final_ba_iterations"])
     if iterations > 0 and result.error is None and not result.interrupted:
         # The whole-map bundle adjustment (`[mapping] final_ba_iterations`); the core logs it.
-        system.refine_map(iterations)
+        # A Ctrl-C meanwhile (it lands once the adjustment returns) skips nothing else.
+        try:
+            system.refine_map(iterations)
+        except KeyboardInterrupt:
+            result.interrupted = True
+            log.warning("interrupted during the whole-map bundle adjustment; writing what was done")
     _uninterrupted(frontend.close, result, "closing the front-end")
     result.frames = outputs.count
     result.states = dict(states)
