@@ -51,17 +51,15 @@ pub fn local_mapping(
     stop: Option<&AtomicBool>,
 ) -> Result<MappingReport> {
     // 1. The window: `kf`, its best covisible keyframes, and the older keyframes observing
-    // most of their points, held fixed.
-    let (local, keyframes) = {
-        let m = read_lock(map);
-        let Some(k) = m.keyframes.get(&kf) else {
-            return Ok(MappingReport::default());
-        };
+    // most of their points, held fixed; the points of the window.
+    let select = |m: &Map| -> Option<Selection> {
+        let k = m.keyframes.get(&kf)?;
         let mut local: Vec<u64> = vec![kf];
         local.extend(k.best_covisible(cfg.window.saturating_sub(1) as usize));
         let local_set: BTreeSet<u64> = local.iter().copied().collect();
+        let point_ids = m.points_of(&local);
         let mut fixed_count: BTreeMap<u64, usize> = BTreeMap::new();
-        for p in &m.points_of(&local) {
+        for p in &point_ids {
             for o in m.points[p].observations.keys() {
                 if !local_set.contains(o) {
                     *fixed_count.entry(*o).or_insert(0) += 1;
@@ -79,13 +77,15 @@ pub fn local_mapping(
         let mut keyframes: Vec<(u64, bool)> =
             local.iter().map(|&id| (id, Some(id) == anchor)).collect();
         keyframes.extend(fixed.iter().map(|f| (f.0, true)));
-        (local, keyframes)
+        Some(Selection {
+            keyframes,
+            point_ids,
+        })
     };
     // 2. Bundle adjustment of the window, outlier observations removed.
     let Some(adjusted) = adjust(
         map,
-        &keyframes,
-        &local,
+        select,
         calib,
         tracking,
         tri,
@@ -98,14 +98,10 @@ pub fn local_mapping(
     };
     let Adjusted {
         mut report,
+        window,
         point_ids,
         mut m,
     } = adjusted;
-    let window: Vec<u64> = keyframes
-        .iter()
-        .filter(|(_, held)| !held)
-        .map(|(id, _)| *id)
-        .collect();
     // 3. Cull points observed by too few keyframes once they had the chance to be seen, and
     // points the window's keyframes rarely find where they predict them.
     for id in &point_ids {
@@ -145,25 +141,26 @@ pub fn global_bundle_adjustment(
     iterations: u32,
     stop: Option<&AtomicBool>,
 ) -> Result<MappingReport> {
-    let (keyframes, all) = {
-        let m = read_lock(map);
+    // Every keyframe (the first of the map and of each unjoined segment held), their points.
+    let select = |m: &Map| -> Option<Selection> {
         let first = m.keyframes.keys().next().copied();
-        let keyframes: Vec<(u64, bool)> = m
-            .keyframes
-            .keys()
-            .map(|&id| (id, Some(id) == first || m.segment_starts.contains(&id)))
-            .collect();
-        let all: Vec<u64> = m.keyframes.keys().copied().collect();
-        (keyframes, all)
+        Some(Selection {
+            keyframes: m
+                .keyframes
+                .keys()
+                .map(|&id| (id, Some(id) == first || m.segment_starts.contains(&id)))
+                .collect(),
+            point_ids: m.points_of(&m.keyframes.keys().copied().collect::<Vec<u64>>()),
+        })
     };
     let Some(Adjusted {
         mut report,
         point_ids,
         mut m,
+        ..
     }) = adjust(
         map,
-        &keyframes,
-        &all,
+        select,
         calib,
         tracking,
         tri,
@@ -194,25 +191,31 @@ pub fn global_bundle_adjustment(
     Ok(report)
 }
 
-/// What [`adjust`] leaves to its caller: the report so far, the points of the problem, and
-/// the map, still write-locked, with the result written back.
+/// The problem [`adjust`] solves, chosen under its read lock: keyframes (id, held fixed)
+/// and points; every observation of those points by those keyframes enters.
+struct Selection {
+    keyframes: Vec<(u64, bool)>,
+    point_ids: Vec<u64>,
+}
+
+/// What [`adjust`] leaves to its caller: the report so far, the keyframes it optimised, the
+/// points of the problem, and the map, still write-locked, with the result written back.
 struct Adjusted<'a> {
     report: MappingReport,
+    window: Vec<u64>,
     point_ids: Vec<u64>,
     m: std::sync::RwLockWriteGuard<'a, Map>,
 }
 
-/// Stereo bundle adjustment of `keyframes` (id, held fixed) and the points of the keyframes
-/// `point_keyframes`, with every observation of them by `keyframes`: gathered under a read
-/// lock, solved without a lock, written back under the write lock (keyframes and points
-/// removed meanwhile skipped) with the outlier observations removed. `None` when there is
-/// nothing to optimise or a loop correction intervened (the result is then discarded,
-/// logged with `what`).
+/// Stereo bundle adjustment of the problem `select` chooses from the map: gathered under a
+/// read lock, solved without a lock, written back under the write lock (keyframes and points
+/// removed meanwhile skipped) with the outlier observations removed. `None` when `select`
+/// finds nothing, there is nothing to optimise, or a loop correction intervened (the result
+/// is then discarded, logged with `what`).
 #[allow(clippy::too_many_arguments)]
 fn adjust<'a>(
     map: &'a RwLock<Map>,
-    keyframes: &[(u64, bool)],
-    point_keyframes: &[u64],
+    select: impl FnOnce(&Map) -> Option<Selection>,
     calib: &StereoCalibration,
     tracking: &TrackingConfig,
     tri: &TriangulationConfig,
@@ -223,14 +226,15 @@ fn adjust<'a>(
     let mut report = MappingReport::default();
     let (kf_ids, mut kfs, point_ids, mut points, observations, epoch) = {
         let m = read_lock(map);
-        let present: Vec<(u64, bool)> = keyframes
-            .iter()
-            .copied()
-            .filter(|(id, _)| m.keyframes.contains_key(id))
-            .collect();
-        let point_ids = m.points_of(point_keyframes);
-        let kf_ids: Vec<u64> = present.iter().map(|(id, _)| *id).collect();
-        let kfs: Vec<BaKeyframe> = present
+        let Some(Selection {
+            keyframes,
+            point_ids,
+        }) = select(&m)
+        else {
+            return Ok(None);
+        };
+        let kf_ids: Vec<u64> = keyframes.iter().map(|(id, _)| *id).collect();
+        let kfs: Vec<BaKeyframe> = keyframes
             .iter()
             .map(|(id, held)| BaKeyframe {
                 cam_from_world: m.keyframes[id].world_from_cam.inverse(),
@@ -308,8 +312,15 @@ fn adjust<'a>(
             report.outliers_removed += 1;
         }
     }
+    let window = kf_ids
+        .iter()
+        .zip(&kfs)
+        .filter(|(_, k)| !k.fixed)
+        .map(|(id, _)| *id)
+        .collect();
     Ok(Some(Adjusted {
         report,
+        window,
         point_ids,
         m,
     }))

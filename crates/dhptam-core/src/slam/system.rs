@@ -40,8 +40,8 @@ pub struct FrameFeatures<'a> {
     /// event-dominated fusion (`[tracking] dvs_sigma_scale`, applied by the Python front-end).
     pub sigma_scale: f32,
     /// How the pair's stereo disparities relate to the frame cameras' (the left image's is
-    /// used): identity for frames, [`DisparityCorrection::event_images`]-like for event
-    /// images warped into the frame cameras.
+    /// used): identity for frames; for event images warped into the frame cameras, the
+    /// correction the Python front-end computes (`Frontend.event_disparity`).
     pub disparity: DisparityCorrection,
 }
 
