@@ -958,3 +958,64 @@ fn global_bundle_adjustment_undoes_a_perturbation_of_the_whole_map() {
     }
     assert_eq!(map.check_invariants(), Vec::<String>::new());
 }
+
+/// `f` with only its first `n` keypoints in each image (the synthetic views list the
+/// landmarks in the same order, so the kept ones still match across the pair).
+fn with_keypoints(f: &SyntheticFrame, n: usize, dim: usize) -> SyntheticFrame {
+    let mut out = f.clone();
+    for view in [&mut out.left, &mut out.right] {
+        view.keypoints.truncate(2 * n);
+        view.descriptors.truncate(dim * n);
+    }
+    out
+}
+
+#[test]
+fn picking_the_track_up_after_a_loss_needs_relocalisation_evidence() {
+    let o = SyntheticOptions {
+        landmarks: 1200,
+        frames: 80,
+        seed: 9,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let mut config = Config::default();
+    config.tracking.reinitialise = false;
+    let needed = config.loop_closing.min_inliers as usize;
+    let mut system = System::new(o.calib, config, false).unwrap();
+    for f in &frames[..40] {
+        track(&mut system, f);
+    }
+    // Two frames without a feature: lost, the motion model still close to the truth.
+    let blank = with_keypoints(&frames[40], 0, o.descriptor_dim);
+    assert_eq!(track(&mut system, &blank).state, TrackState::Lost);
+    // A frame with fewer matches than a relocalisation needs (but more than `min_tracked`)
+    // does not end the loss: after a loss the stale motion model needs the same evidence.
+    let few = with_keypoints(&frames[41], needed - 5, o.descriptor_dim);
+    let r = track(&mut system, &few);
+    assert_eq!(
+        r.state,
+        TrackState::Lost,
+        "picked up with {} inliers",
+        r.inliers
+    );
+    // A full frame picks the track up, as a relocalisation: a keyframe, the velocity restarted.
+    let r = track(&mut system, &frames[42]);
+    assert_eq!(r.state, TrackState::Relocalised, "{} inliers", r.inliers);
+    assert!(r.keyframe && r.inliers >= needed);
+    let first = frames[0].world_from_cam.inverse();
+    let error = |r: &TrackResult, f: &SyntheticFrame| {
+        ((first * f.world_from_cam).inverse() * r.world_from_cam)
+            .log()
+            .norm()
+    };
+    assert!(error(&r, &frames[42]) < 0.02, "{}", error(&r, &frames[42]));
+    let next = track(&mut system, &frames[43]);
+    assert_eq!(next.state, TrackState::Ok);
+    assert!(
+        error(&next, &frames[43]) < 0.02,
+        "{}",
+        error(&next, &frames[43])
+    );
+    assert_eq!(system.tracking_totals().relocalisations, 1);
+}

@@ -244,7 +244,8 @@ pub struct TrackingTotals {
     pub bridges_refused: u64,
     /// New map segments started at the constant-velocity pose (`[tracking] reinitialise`).
     pub segments: u64,
-    /// Frames relocalised against an older keyframe.
+    /// Frames relocalised against an older keyframe, or whose track was picked up again from
+    /// the motion model after a loss (with as many inliers as a relocalisation needs).
     pub relocalisations: u64,
     /// Frames moved on by the motion model without being tracked ([`System::predict`]).
     pub predicted: u64,
@@ -565,15 +566,40 @@ impl System {
                 });
                 (tracked, previous, predicted)
             };
-            match tracked.filter(|t| t.inliers >= ctx.cfg.min_tracked as usize) {
+            // After a loss the motion model is stale (the last pose is frames old): picking
+            // the track up again from it needs the evidence a relocalisation needs, and the
+            // velocity restarts (the step to the last pose spans the lost frames).
+            let reacquired = self.state.lost;
+            let needed = if reacquired {
+                ctx.cfg.min_tracked.max(c.loop_closing.min_inliers)
+            } else {
+                ctx.cfg.min_tracked
+            };
+            match tracked.filter(|t| t.inliers >= needed as usize) {
                 Some(t) => {
+                    if reacquired {
+                        self.totals.relocalisations += 1;
+                        log::info!(
+                            "tracking: tracking regained at t={t_ns} ns from the motion model ({} inliers)",
+                            t.inliers
+                        );
+                    }
                     let mut map = write_lock(&shared.map);
                     self.tracked_depth = median_point_depth(
                         &map,
                         &t.cam_from_world,
                         t.matches.iter().flatten().copied(),
                     );
-                    commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, previous, false)
+                    let previous = if reacquired { None } else { previous };
+                    commit_tracked(
+                        &mut map,
+                        &mut self.state,
+                        &frame,
+                        &ctx,
+                        t,
+                        previous,
+                        reacquired,
+                    )
                 }
                 None => match shared.time("relocalise", || self.relocalise(&frame, &ctx)) {
                     Some((t, reference)) => {
