@@ -238,6 +238,22 @@ def test_config_section_builds_the_extractor(monkeypatch: pytest.MonkeyPatch) ->
     assert len(extractor.extract_one(_camera())) == 10
 
 
+def test_the_default_keypoint_budget_follows_the_image_size() -> None:
+    # One keypoint per 256 px², within [1000, 8000].
+    assert features.keypoint_budget(320, 320) == 1000  # the floor (400 by area)
+    assert features.keypoint_budget(1024, 1024) == 4096
+    assert features.keypoint_budget(1280, 720) == 3600
+    assert features.keypoint_budget(4096, 4096) == 8000  # the cap
+    with pytest.raises(InputError, match="image size"):
+        features.keypoint_budget(0, 480)
+    orb = Config.from_toml('[features]\nextractor = "orb"')
+    assert orb.to_dict()["features"]["max_keypoints"] == 0  # the default: from the size
+    assert features.from_config(orb, image_size=(1024, 1024)).max_keypoints == 4096
+    assert features.from_config(orb).max_keypoints == 1000  # no size given: the floor
+    explicit = Config.from_toml('[features]\nextractor = "orb"\nmax_keypoints = 77')
+    assert features.from_config(explicit, image_size=(1024, 1024)).max_keypoints == 77
+
+
 def _run_python(code: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True, timeout=120

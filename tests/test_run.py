@@ -52,6 +52,9 @@ def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: P
     assert timing["stages"]["tracking"]["count"] == 24
     config = _core.Config.from_file(tmp_path / "config.toml").to_dict()
     assert config["fusion"]["mode"] == mode
+    # config.toml names the extractor that ran and the keypoint budget it was given.
+    assert config["features"]["extractor"] == "orb"
+    assert config["features"]["max_keypoints"] == dhptam.features.keypoint_budget(320, 320) == 1000
     header = (tmp_path / "map.ply").read_bytes()[:200]
     assert header.startswith(b"ply") and f"element vertex {result.map_points}".encode() in header
     assert "done: 24 frames" in (tmp_path / "run.log").read_text()
@@ -64,6 +67,25 @@ def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: P
     assert all(r.split(",")[column] == "none" for r in rows)
     column = csv_header.split(",").index("flood")
     assert all(r.split(",")[column] == "0" for r in rows)
+
+
+def test_the_features_section_of_the_configuration_reaches_the_extractor(
+    sim_desk_run: Path, tmp_path: Path
+) -> None:
+    config = tmp_path / "in.toml"
+    config.write_text('[features]\nextractor = "sift"\nmax_keypoints = 150\n')
+    result = run(
+        sim_desk_run, tmp_path / "out", mode="frames", features="orb", config=config,
+        progress=False, threaded=False, max_frames=3,
+    )  # fmt: skip
+    assert result.frames == 3
+    header, *rows = (tmp_path / "out" / "frames.csv").read_text().splitlines()
+    counts = [int(r.split(",")[header.split(",").index("keypoints_left")]) for r in rows]
+    # The desk frames give ~600 ORB keypoints without a cap.
+    assert max(counts) == 150, counts
+    written = _core.Config.from_file(tmp_path / "out" / "config.toml").to_dict()["features"]
+    # `features` chose the extractor; the file's other [features] settings were used.
+    assert (written["extractor"], written["max_keypoints"]) == ("orb", 150)
 
 
 class _FailingExtractor:

@@ -43,7 +43,6 @@ and joins the thread. ``prefetch=0`` runs everything in the consumer's thread.
 
 from __future__ import annotations
 
-import re
 from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -52,6 +51,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import _core
+from ._config import with_setting
 from ._prefetch import prefetched
 from .datasets import EventWindow, Sequence
 from .errors import InputError
@@ -201,13 +201,8 @@ def _exposed_like(frame: _U8, like: _U8) -> _U8:
 
 
 def _with_mode(config: _core.Config, mode: str) -> _core.Config:
-    """``config`` with ``[fusion] mode`` replaced (the Rust config has no setters)."""
-    text = config.to_toml()
-    head, sep, tail = text.partition("[fusion]")
-    if not sep:
-        raise InputError("the configuration has no [fusion] section", field="fusion")
-    tail = re.sub(r'(?m)^mode = ".*"$', f'mode = "{mode}"', tail, count=1)
-    return _core.Config.from_toml(head + sep + tail, "<frontend>")
+    """``config`` with ``[fusion] mode`` replaced."""
+    return with_setting(config, "fusion", "mode", mode)
 
 
 class Frontend:

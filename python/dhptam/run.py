@@ -27,6 +27,7 @@ from __future__ import annotations
 import io
 import json
 import logging
+import os
 import signal
 import tempfile
 import threading
@@ -324,9 +325,13 @@ def run(
     mode
         ``fusion`` (frames and events blended by the online β), ``frames`` or ``events``.
     features
-        ``orb``, ``sift`` (no weights needed), ``r2d2`` or ``superpoint``.
+        ``orb``, ``sift`` (no weights needed), ``r2d2`` or ``superpoint``; it replaces
+        ``[features] extractor`` of ``config``, whose other ``[features]`` settings
+        (``max_keypoints``, 0 by default: :func:`dhptam.features.keypoint_budget` of the
+        rectified frame size; ``device``, ``threads``, ``weights``) the extractor is built with.
     weights
-        Weight file for the learned extractors (see ``dhptam.features`` for the search order).
+        Weight file for the learned extractors (see ``dhptam.features`` for the search order);
+        replaces ``[features] weights``.
     config
         A configuration file or :class:`dhptam.Config`; defaults otherwise.
     realtime
@@ -360,7 +365,9 @@ def run(
         Counts, timing and the files written. A Ctrl-C stops the run cleanly
         (``interrupted``); any other failure is raised after everything done so far is written.
     """
-    from .features import load as load_features
+    from ._config import with_setting
+    from .features import from_config as features_from_config
+    from .features import keypoint_budget
     from .frontend import Frontend
     from .system import StereoCalibration, System
 
@@ -386,10 +393,18 @@ def run(
             raise InputError(
                 f"{sequence}: a {fmt} sequence has no events; run it with mode 'frames'", field="mode"
             )
-        if extractor is None:
-            extractor = load_features(features, weights=weights)
+        # The extractor the run uses is `features`; the [features] section gives its settings.
+        cfg = with_setting(cfg, "features", "extractor", features)
+        if weights is not None:
+            cfg = with_setting(cfg, "features", "weights", os.fspath(weights))
         stop_at = None if max_frames is None else int(max_frames)
         frontend = Frontend(seq, mode, cfg, prefetch=0, stop=stop_at)
+        if int(cfg.to_dict()["features"]["max_keypoints"]) == 0:
+            # 0: the budget of the rectified frames' size; config.toml records the number.
+            budget = keypoint_budget(int(frontend.frame_rect.width), int(frontend.frame_rect.height))
+            frontend.config = with_setting(frontend.config, "features", "max_keypoints", budget)
+        if extractor is None:
+            extractor = features_from_config(frontend.config)
         system = System(StereoCalibration(*frontend.calibration), frontend.config, threaded=threaded)
         outputs = _Outputs(out_dir, frontend.rect_from_cam, tuple(trajectory_formats))
         outputs.meta["sequence"] = str(Path(sequence).resolve())

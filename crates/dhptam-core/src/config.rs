@@ -283,8 +283,9 @@ config_section! {
         device: String = "auto".to_owned(),
         /// CPU threads of torch (process-wide) or OpenCV; 0 keeps the library's default.
         threads: u32 = 0,
-        /// Keypoints kept per image, best scores first.
-        max_keypoints: u32 = 1000,
+        /// Keypoints kept per image, best scores first; 0 (the default) sets it from the image
+        /// size (`dhptam.features.keypoint_budget`: one per 256 px², 1000 to 8000).
+        max_keypoints: u32 = 0,
     }
 }
 
@@ -896,12 +897,6 @@ impl FeaturesConfig {
             device_ok,
             "\"auto\", \"cpu\", \"cuda\" or \"cuda:N\"",
             format!("{:?}", self.device),
-        )?;
-        check(
-            "features.max_keypoints",
-            self.max_keypoints > 0,
-            "a positive count",
-            self.max_keypoints,
         )
     }
 }
@@ -1075,7 +1070,7 @@ mod tests {
         )
         .unwrap();
         assert_eq!(c.features.extractor, "sift");
-        assert_eq!(c.features.max_keypoints, 1000);
+        assert_eq!(c.features.max_keypoints, 0, "0: from the image size");
         let err =
             Config::from_toml_str("[features]\nextractor = \"surf\"\n", "f.toml").unwrap_err();
         assert!(err.to_string().contains("features.extractor"), "{err}");

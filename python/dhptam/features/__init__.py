@@ -44,7 +44,17 @@ from .. import _core
 from ..errors import InputError
 from .base import Extractor, Features
 
-__all__ = ["EXTRACTORS", "Extractor", "Features", "from_config", "load", "match"]
+__all__ = [
+    "EXTRACTORS",
+    "KEYPOINT_BUDGET_RANGE",
+    "PIXELS_PER_KEYPOINT",
+    "Extractor",
+    "Features",
+    "from_config",
+    "keypoint_budget",
+    "load",
+    "match",
+]
 
 #: Names accepted by :func:`load`.
 EXTRACTORS = ("superpoint", "r2d2", "orb", "sift")
@@ -108,21 +118,49 @@ def load(
     return SuperPoint(path, max_keypoints=max_keypoints, device=device, threads=threads, **options)
 
 
-def from_config(config: _core.Config | None = None, **options: Any) -> Extractor:
+#: Image area per keypoint of :func:`keypoint_budget`, square pixels (one per 16 × 16 block).
+PIXELS_PER_KEYPOINT = 256
+#: Fewest and most keypoints :func:`keypoint_budget` gives.
+KEYPOINT_BUDGET_RANGE = (1000, 8000)
+
+
+def keypoint_budget(width: int, height: int) -> int:
+    """Keypoints per image for ``[features] max_keypoints = 0`` (the default): one per
+    :data:`PIXELS_PER_KEYPOINT` square pixels of a ``width`` × ``height`` image, within
+    :data:`KEYPOINT_BUDGET_RANGE`; 1000 at 320 × 320 and below, 4096 at TUM-VIE's 1024 × 1024.
+
+    A fixed count spreads thinner as images grow: at 1024 × 1024, 1000 ORB keypoints left every
+    mode of the simulated TUM-VIE-size sequences 2–19× less accurate than 4000
+    (``docs/BENCHMARKS.md``, "Keypoint budget by image size").
+    """
+    if width <= 0 or height <= 0:
+        raise InputError(f"image size must be positive, got {width}×{height}", field="image_size")
+    lo, hi = KEYPOINT_BUDGET_RANGE
+    return int(min(max(round(width * height / PIXELS_PER_KEYPOINT), lo), hi))
+
+
+def from_config(
+    config: _core.Config | None = None, *, image_size: tuple[int, int] | None = None, **options: Any
+) -> Extractor:
     """The extractor described by the ``[features]`` section of ``config`` (defaults if None).
 
-    ``options`` are passed on to :func:`load` (extractor-specific settings).
+    ``max_keypoints = 0`` takes :func:`keypoint_budget` of ``image_size`` (width, height), or
+    its lower bound (1000) without one. ``options`` are passed on to :func:`load`
+    (extractor-specific settings).
 
     >>> from dhptam import Config, features
     >>> features.from_config(Config.from_toml('[features]\\nextractor = "sift"\\nmax_keypoints = 50'))
     SIFT(max_keypoints=50)
     """
     section = (config if config is not None else _core.Config()).to_dict()["features"]
+    max_keypoints = int(section["max_keypoints"])
+    if max_keypoints == 0:
+        max_keypoints = keypoint_budget(*image_size) if image_size is not None else KEYPOINT_BUDGET_RANGE[0]
     return load(
         section["extractor"],
         section["weights"] or None,
         section["device"],
-        int(section["max_keypoints"]),
+        max_keypoints,
         threads=int(section["threads"]) or None,
         **options,
     )
