@@ -4,14 +4,16 @@ For every trajectory file (``*.csv`` / ``*.tum``) of the folder ``--trajectories
 ``$DHPTAM_SHARED/data/trajectories``, else ``../shared/data/trajectories`` beside the
 repository) the simulator renders the first ``--duration`` seconds of the trajectory, fitted
 into the desk room, with the small rig (320×320 frames, 320×180 events) under normal lighting
-(the ``desk`` preset with the file's motion). Each sequence is generated once into the dhptam
-cache (``$DHPTAM_CACHE_DIR`` or ``~/.cache/dhptam``, under ``sequences/normal-seed<S>-<D>s/``) and
-reused. dhptam then runs on it in every mode and is evaluated against the simulator's ground
-truth (evo, SE(3) alignment, left frame camera). Prints a Markdown table for
-docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` under ``--out``.
+(the ``desk`` preset with the file's motion; ``--preset tumvie-desk`` for the TUM-VIE-size rig,
+1024×1024 frames and 1280×720 events). Each sequence is generated once into the dhptam cache
+(``$DHPTAM_CACHE_DIR`` or ``~/.cache/dhptam``, under ``sequences/normal-seed<S>-<D>s/``, or
+``sequences/normal-<preset>-seed<S>-<D>s/`` for another preset) and reused. dhptam then runs
+on it in every mode and is evaluated against the simulator's ground truth (evo, SE(3)
+alignment, left frame camera). Prints a Markdown table for docs/BENCHMARKS.md and writes the
+runs, ``eval.json`` files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
-        [--features orb]
+        [--features orb] [--preset desk|tumvie-desk]
         [--out bench-accuracy] [--sync] [--warp-depth plane|tracked|both]
         [--keypoint-sigma octave|unit]
 
@@ -55,6 +57,12 @@ def main() -> int:
     parser.add_argument("--trajectories", type=Path, default=default_trajectories())
     parser.add_argument("--duration", type=float, default=4.0, help="seconds of each trajectory (default 4)")
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
+    parser.add_argument(
+        "--preset",
+        choices=("desk", "tumvie-desk"),
+        default="desk",
+        help="rig: desk (320-pixel, default) or tumvie-desk (TUM-VIE size); normal lighting",
+    )
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy"))
@@ -88,9 +96,10 @@ def main() -> int:
     if not files:
         parser.error(f"no .csv/.tum/.txt trajectory in {args.trajectories}")
 
-    root = cache_dir() / "sequences" / f"normal-seed{args.seed}-{args.duration:g}s"
+    kind = "" if args.preset == "desk" else f"{args.preset}-"
+    root = cache_dir() / "sequences" / f"normal-{kind}seed{args.seed}-{args.duration:g}s"
     lines = [
-        f"Sequences: first {args.duration:g} s of each trajectory, `desk` preset (small rig, normal "
+        f"Sequences: first {args.duration:g} s of each trajectory, `{args.preset}` preset (normal "
         f"lighting), seed {args.seed}, features {args.features}, "
         f"keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{'synchronous' if args.sync else 'threaded'} mapping; "
@@ -105,7 +114,7 @@ def main() -> int:
             print(f"simulating {name} into {sequence} (once; cached)", file=sys.stderr)
             simulate(
                 root,
-                preset="desk",
+                preset=args.preset,
                 name=name,
                 seed=args.seed,
                 duration_s=args.duration,

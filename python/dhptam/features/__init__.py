@@ -130,8 +130,8 @@ def keypoint_budget(width: int, height: int) -> int:
     :data:`KEYPOINT_BUDGET_RANGE`; 1000 at 320 × 320 and below, 4096 at TUM-VIE's 1024 × 1024.
 
     A fixed count spreads thinner as images grow: at 1024 × 1024, 1000 ORB keypoints left every
-    mode of the simulated TUM-VIE-size sequences 2–19× less accurate than 4000
-    (``docs/BENCHMARKS.md``, "Keypoint budget by image size").
+    mode on five simulated TUM-VIE-size sequences 1.2–19× less accurate than this budget
+    (``docs/BENCHMARKS.md``, "Accuracy at TUM-VIE size").
     """
     if width <= 0 or height <= 0:
         raise InputError(f"image size must be positive, got {width}×{height}", field="image_size")
