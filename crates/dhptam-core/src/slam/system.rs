@@ -590,7 +590,7 @@ impl System {
                         &t.cam_from_world,
                         t.matches.iter().flatten().copied(),
                     );
-                    let previous = if reacquired { None } else { previous };
+                    // As a relocalisation (`reacquired`): keyframe, velocity from rest.
                     commit_tracked(
                         &mut map,
                         &mut self.state,
