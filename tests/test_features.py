@@ -236,6 +236,15 @@ def test_config_section_builds_the_extractor(monkeypatch: pytest.MonkeyPatch) ->
     )
     assert extractor.name == "r2d2" and "Fast_Quad_L2Net" in repr(extractor)
     assert len(extractor.extract_one(_camera())) == 10
+    # The fast CPU setting from the section: one scale, bfloat16 trunk.
+    fast = Config.from_toml(
+        '[features]\nweights = "faster2d2_WASF_N16"\ndevice = "cpu"\nprecision = "bfloat16"\nscales = [1.0]'
+    )
+    extractor = features.from_config(fast)
+    assert (extractor.precision, extractor.scales) == ("bfloat16", (1.0,))  # type: ignore[attr-defined]
+    # Arguments take precedence over the section.
+    extractor = features.from_config(fast, precision="float32", scales=(1.0, 0.5))
+    assert (extractor.precision, extractor.scales) == ("float32", (1.0, 0.5))  # type: ignore[attr-defined]
 
 
 def test_the_default_keypoint_budget_follows_the_image_size() -> None:

@@ -10,7 +10,9 @@ from . import _core
 from .errors import InputError
 
 
-def with_setting(config: _core.Config, section: str, key: str, value: str | float | bool) -> _core.Config:
+def with_setting(
+    config: _core.Config, section: str, key: str, value: str | float | bool | list[float]
+) -> _core.Config:
     """``config`` with ``[section] key`` set to ``value`` (a key the configuration has)."""
     text = config.to_toml()
     start = text.find(f"[{section}]\n")

@@ -328,7 +328,9 @@ def run(
         ``orb``, ``sift`` (no weights needed), ``r2d2`` or ``superpoint``; it replaces
         ``[features] extractor`` of ``config``, whose other ``[features]`` settings
         (``max_keypoints``, 0 by default: :func:`dhptam.features.keypoint_budget` of the
-        rectified frame size; ``device``, ``threads``, ``weights``) the extractor is built with.
+        rectified frame size; ``device``, ``threads``, ``weights``, ``precision``, ``scales``)
+        the extractor is built with; ``precision`` and ``scales`` are dropped, with a log line,
+        where they do not apply to ``features``.
     weights
         Weight file for the learned extractors (see ``dhptam.features`` for the search order);
         replaces ``[features] weights``.
@@ -394,7 +396,7 @@ def run(
                 f"{sequence}: a {fmt} sequence has no events; run it with mode 'frames'", field="mode"
             )
         # The extractor the run uses is `features`; the [features] section gives its settings.
-        cfg = with_setting(cfg, "features", "extractor", features)
+        cfg = with_setting(_without_settings_foreign_to(features, cfg), "features", "extractor", features)
         if weights is not None:
             cfg = with_setting(cfg, "features", "weights", os.fspath(weights))
         stop_at = None if max_frames is None else int(max_frames)
@@ -458,6 +460,27 @@ def _viz_sink(viz: str, out_dir: Path, calibration: Any, resources: ExitStack) -
     sink = RerunSink(out_dir / RECORDING, calibration, spawn=viz == "rerun-spawn", name=out_dir.name)
     resources.callback(sink.close)
     return sink
+
+
+def _without_settings_foreign_to(extractor: str, config: _core.Config) -> _core.Config:
+    """``config`` without the ``[features]`` settings that do not apply to ``extractor``.
+
+    ``precision`` other than float32 belongs to the learned extractors (int8 to R2D2 alone) and
+    ``scales`` to R2D2, so one configuration serves the feature ablation (``--features orb``
+    next to ``--features r2d2``); what is dropped is logged.
+    """
+    from ._config import with_setting
+
+    section = config.to_dict()["features"]
+    precision = section["precision"]
+    keeps = {"r2d2": True, "superpoint": precision != "int8"}.get(extractor, precision == "float32")
+    if not keeps:
+        log.info("features: precision %s does not apply to %s; it runs in float32", precision, extractor)
+        config = with_setting(config, "features", "precision", "float32")
+    if section["scales"] and extractor != "r2d2":
+        log.info("features: scales %s are R2D2's; %s does not use them", section["scales"], extractor)
+        config = with_setting(config, "features", "scales", [])
+    return config
 
 
 def _finish(

@@ -286,6 +286,14 @@ config_section! {
         /// Keypoints kept per image, best scores first; 0 (the default) sets it from the image
         /// size (`dhptam.features.keypoint_budget`: one per 256 px², 1000 to 8000).
         max_keypoints: u32 = 0,
+        /// Arithmetic of a learned extractor's network trunk: "float32", "bfloat16" (2–4×
+        /// faster on CPUs with AMX or AVX-512-BF16, emulated and slower elsewhere), "float16"
+        /// (CUDA only) or "int8" (R2D2 on the CPU only). ORB and SIFT take "float32" only.
+        precision: String = "float32".to_owned(),
+        /// R2D2's image pyramid, fractions of the image in (0, 1]; empty for 1, 0.75 and 0.5.
+        /// [1.0] with the faster2d2 weights and a bfloat16 or int8 trunk is the fast CPU
+        /// setting (docs/FEATURES.md). R2D2 only.
+        scales: Vec<f64> = Vec::new(),
     }
 }
 
@@ -897,6 +905,38 @@ impl FeaturesConfig {
             device_ok,
             "\"auto\", \"cpu\", \"cuda\" or \"cuda:N\"",
             format!("{:?}", self.device),
+        )?;
+        let learned = matches!(self.extractor.as_str(), "r2d2" | "superpoint");
+        let precision_ok = match self.precision.as_str() {
+            "float32" => true,
+            "bfloat16" | "float16" => learned,
+            "int8" => self.extractor == "r2d2",
+            _ => false,
+        };
+        check(
+            "features.precision",
+            precision_ok,
+            &format!(
+                "\"float32\", \"bfloat16\", \"float16\" or \"int8\" (reduced precisions for the learned \
+                 extractors, int8 for r2d2 only; extractor is {:?})",
+                self.extractor
+            ),
+            format!("{:?}", self.precision),
+        )?;
+        check(
+            "features.scales",
+            self.scales.iter().all(|s| *s > 0.0 && *s <= 1.0),
+            "fractions of the image in (0, 1]",
+            format!("{:?}", self.scales),
+        )?;
+        check(
+            "features.scales",
+            self.scales.is_empty() || self.extractor == "r2d2",
+            &format!(
+                "an empty list: scales are R2D2's (extractor is {:?})",
+                self.extractor
+            ),
+            format!("{:?}", self.scales),
         )
     }
 }
@@ -1076,6 +1116,38 @@ mod tests {
         assert!(err.to_string().contains("features.extractor"), "{err}");
         let err = Config::from_toml_str("[features]\ndevice = \"gpu\"\n", "f.toml").unwrap_err();
         assert!(err.to_string().contains("features.device"), "{err}");
+    }
+
+    #[test]
+    fn features_section_checks_precision_and_scales_against_the_extractor() {
+        let c = Config::from_toml_str(
+            "[features]\nweights = \"faster2d2_WASF_N16\"\nprecision = \"int8\"\nscales = [1.0]\n",
+            "f.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            (c.features.precision.as_str(), c.features.scales.as_slice()),
+            ("int8", &[1.0][..])
+        );
+        let bad = [
+            ("precision = \"int4\"", "features.precision"),
+            (
+                "extractor = \"superpoint\"\nprecision = \"int8\"",
+                "features.precision",
+            ),
+            (
+                "extractor = \"orb\"\nprecision = \"bfloat16\"",
+                "features.precision",
+            ),
+            ("scales = [1.0, 0.0]", "features.scales"),
+            ("scales = [1.5]", "features.scales"),
+            ("extractor = \"sift\"\nscales = [1.0]", "features.scales"),
+        ];
+        for (body, key) in bad {
+            let err =
+                Config::from_toml_str(&format!("[features]\n{body}\n"), "f.toml").unwrap_err();
+            assert!(err.to_string().contains(key), "{body}: {err}");
+        }
     }
 
     #[test]

@@ -145,8 +145,9 @@ def from_config(
     """The extractor described by the ``[features]`` section of ``config`` (defaults if None).
 
     ``max_keypoints = 0`` takes :func:`keypoint_budget` of ``image_size`` (width, height), or
-    its lower bound (1000) without one. ``options`` are passed on to :func:`load`
-    (extractor-specific settings).
+    its lower bound (1000) without one. ``precision`` goes to the learned extractors and a
+    non-empty ``scales`` to R2D2. ``options`` are passed on to :func:`load`
+    (extractor-specific settings) and take precedence over the section.
 
     >>> from dhptam import Config, features
     >>> features.from_config(Config.from_toml('[features]\\nextractor = "sift"\\nmax_keypoints = 50'))
@@ -156,6 +157,12 @@ def from_config(
     max_keypoints = int(section["max_keypoints"])
     if max_keypoints == 0:
         max_keypoints = keypoint_budget(*image_size) if image_size is not None else KEYPOINT_BUDGET_RANGE[0]
+    # The configuration checked precision and scales against the extractor; ORB and SIFT
+    # take neither, so they are passed on only where they apply.
+    if section["extractor"] in ("r2d2", "superpoint"):
+        options.setdefault("precision", section["precision"])
+    if section["scales"]:
+        options.setdefault("scales", tuple(float(s) for s in section["scales"]))
     return load(
         section["extractor"],
         section["weights"] or None,
