@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -245,6 +246,15 @@ def test_config_section_builds_the_extractor(monkeypatch: pytest.MonkeyPatch) ->
     # Arguments take precedence over the section.
     extractor = features.from_config(fast, precision="float32", scales=(1.0, 0.5))
     assert (extractor.precision, extractor.scales) == ("float32", (1.0, 0.5))  # type: ignore[attr-defined]
+
+
+def test_the_shipped_r2d2_cpu_configuration_builds_the_fast_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    # configs/r2d2-cpu.toml, the file docs/FEATURES.md and the README point CPU users to.
+    monkeypatch.setenv("DHPTAM_WEIGHTS_DIR", str(shared_path("models", "r2d2")))
+    path = Path(__file__).resolve().parents[1] / "configs" / "r2d2-cpu.toml"
+    extractor = features.from_config(Config.from_file(path), device="cpu")
+    assert "Fast_Quad_L2Net" in repr(extractor)
+    assert (extractor.precision, extractor.scales) == ("int8", (1.0,))  # type: ignore[attr-defined]
 
 
 def test_the_default_keypoint_budget_follows_the_image_size() -> None:

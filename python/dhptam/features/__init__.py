@@ -165,10 +165,10 @@ def from_config(
         options.setdefault("scales", tuple(float(s) for s in section["scales"]))
     return load(
         section["extractor"],
-        section["weights"] or None,
-        section["device"],
-        max_keypoints,
-        threads=int(section["threads"]) or None,
+        options.pop("weights", section["weights"] or None),
+        options.pop("device", section["device"]),
+        options.pop("max_keypoints", max_keypoints),
+        threads=options.pop("threads", int(section["threads"]) or None),
         **options,
     )
 
