@@ -101,6 +101,7 @@ def main() -> int:
     lines = [
         f"Sequences: first {args.duration:g} s of each trajectory, `{args.preset}` preset (normal "
         f"lighting), seed {args.seed}, features {args.features}, "
+        f"configuration {args.config or 'default'}, "
         f"keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",

@@ -71,7 +71,8 @@ def main() -> int:
     root = cache_dir() / "sequences" / f"presets-seed{args.seed}-{args.duration:g}s"
     lines = [
         f"Sequences: first {args.duration:g} s of each preset, seed {args.seed}, features "
-        f"{args.features}, default configuration, keypoint σ {args.keypoint_sigma or 'default'}; "
+        f"{args.features}, configuration {args.config or 'default'}, "
+        f"keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
