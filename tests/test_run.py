@@ -174,6 +174,22 @@ def test_demo_writes_the_table_and_the_report(
     assert np.isfinite(rows[0].evaluation.ate_rmse_m)
 
 
+def test_demo_runs_start_from_the_given_configuration(
+    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cache = tmp_path / "cache"
+    (cache / "sequences" / "seed1").mkdir(parents=True)
+    os.symlink(sim_desk_run, cache / "sequences" / "seed1" / "desk")
+    monkeypatch.setenv("DHPTAM_CACHE_DIR", str(cache))
+    config = tmp_path / "small.toml"
+    config.write_text("[features]\nmax_keypoints = 150\n")
+    main(["demo", "--out", str(tmp_path / "demo"), "--preset", "desk", "--seed", "1", "--modes", "frames",
+          "--config", str(config), "-q"])  # fmt: skip
+    written = _core.Config.from_file(tmp_path / "demo" / "frames" / "config.toml").to_dict()["features"]
+    assert written["max_keypoints"] == 150
+    assert f"Configuration: `{config}`" in (tmp_path / "demo" / "report.md").read_text()
+
+
 class _RecordingSystem:
     """Records the track/bridge calls of the run loop."""
 

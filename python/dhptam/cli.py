@@ -375,6 +375,7 @@ def _demo_command(args: argparse.Namespace) -> int:
         preset=args.preset,
         seed=args.seed,
         weights=args.weights,
+        config=args.config,
         progress=not args.quiet,
     )
     return 0
@@ -398,6 +399,9 @@ def _add_demo_command(sub: Any) -> None:
     )
     p.add_argument("--weights", metavar="PATH", help="weights of a learned extractor")
     p.add_argument("--modes", default="fusion,frames,events", help="comma-separated modes to run")
+    p.add_argument(
+        "--config", metavar="FILE", help="configuration TOML every run starts from (see dhptam run --config)"
+    )
     p.add_argument("--preset", default="demo", help="simulator preset (default demo)")
     p.add_argument("--seed", type=int, default=0, help="simulator seed")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
