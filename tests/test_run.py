@@ -75,7 +75,8 @@ def test_the_features_section_of_the_configuration_reaches_the_extractor(
     config = tmp_path / "in.toml"
     # R2D2's settings in the file: run with ORB, they are dropped (logged), the rest is kept.
     config.write_text(
-        '[features]\nextractor = "r2d2"\nmax_keypoints = 150\nprecision = "int8"\nscales = [1.0]\n'
+        '[features]\nextractor = "r2d2"\nweights = "faster2d2_WASF_N16"\nmax_keypoints = 150\n'
+        'precision = "int8"\nscales = [1.0]\n'
     )
     result = run(
         sim_desk_run, tmp_path / "out", mode="frames", features="orb", config=config,
@@ -89,9 +90,10 @@ def test_the_features_section_of_the_configuration_reaches_the_extractor(
     written = _core.Config.from_file(tmp_path / "out" / "config.toml").to_dict()["features"]
     # `features` chose the extractor; the file's other [features] settings were used.
     assert (written["extractor"], written["max_keypoints"]) == ("orb", 150)
-    assert (written["precision"], written["scales"]) == ("float32", [])
+    assert (written["precision"], written["scales"], written["weights"]) == ("float32", [], "")
     log = (tmp_path / "out" / "run.log").read_text()
     assert "precision int8 does not apply to orb" in log and "are R2D2's" in log
+    assert "weights faster2d2_WASF_N16 are for r2d2" in log
 
 
 class _FailingExtractor:

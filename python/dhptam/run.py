@@ -329,8 +329,8 @@ def run(
         ``[features] extractor`` of ``config``, whose other ``[features]`` settings
         (``max_keypoints``, 0 by default: :func:`dhptam.features.keypoint_budget` of the
         rectified frame size; ``device``, ``threads``, ``weights``, ``precision``, ``scales``)
-        the extractor is built with; ``precision`` and ``scales`` are dropped, with a log line,
-        where they do not apply to ``features``.
+        the extractor is built with; ``precision``, ``scales`` and ``weights`` are dropped, with
+        a log line, where they do not apply to ``features``.
     weights
         Weight file for the learned extractors (see ``dhptam.features`` for the search order);
         replaces ``[features] weights``.
@@ -465,13 +465,20 @@ def _viz_sink(viz: str, out_dir: Path, calibration: Any, resources: ExitStack) -
 def _without_settings_foreign_to(extractor: str, config: _core.Config) -> _core.Config:
     """``config`` without the ``[features]`` settings that do not apply to ``extractor``.
 
-    ``precision`` other than float32 belongs to the learned extractors (int8 to R2D2 alone) and
-    ``scales`` to R2D2, so one configuration serves the feature ablation (``--features orb``
-    next to ``--features r2d2``); what is dropped is logged.
+    ``precision`` other than float32 belongs to the learned extractors (int8 to R2D2 alone),
+    ``scales`` to R2D2, and ``weights`` to the configuration's own ``extractor``, so one
+    configuration serves the feature ablation (``--features orb`` next to ``--features
+    r2d2``); what is dropped is logged.
     """
     from ._config import with_setting
 
     section = config.to_dict()["features"]
+    if section["weights"] and extractor != section["extractor"]:
+        log.info(
+            "features: weights %s are for %s; %s runs with its own",
+            section["weights"], section["extractor"], extractor,
+        )  # fmt: skip
+        config = with_setting(config, "features", "weights", "")
     precision = section["precision"]
     keeps = {"r2d2": True, "superpoint": precision != "int8"}.get(extractor, precision == "float32")
     if not keeps:
