@@ -257,6 +257,16 @@ def test_the_shipped_r2d2_cpu_configuration_builds_the_fast_setting(monkeypatch:
     assert (extractor.precision, extractor.scales) == ("int8", (1.0,))  # type: ignore[attr-defined]
 
 
+def test_the_shipped_r2d2_one_scale_configuration_builds_its_setting(monkeypatch: pytest.MonkeyPatch) -> None:
+    # configs/r2d2-one-scale.toml: the smaller network at one scale, float32, on any device.
+    monkeypatch.setenv("DHPTAM_WEIGHTS_DIR", str(shared_path("models", "r2d2")))
+    path = Path(__file__).resolve().parents[1] / "configs" / "r2d2-one-scale.toml"
+    extractor = features.from_config(Config.from_file(path), device="cpu")
+    assert "Fast_Quad_L2Net" in repr(extractor)
+    assert (extractor.precision, extractor.scales) == ("float32", (1.0,))  # type: ignore[attr-defined]
+    assert extractor.scales_for(320, 320) == [1.0]  # type: ignore[attr-defined]
+
+
 def test_the_default_keypoint_budget_follows_the_image_size() -> None:
     # One keypoint per 256 px², within [1000, 8000].
     assert features.keypoint_budget(320, 320) == 1000  # the floor (400 by area)
