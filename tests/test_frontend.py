@@ -94,6 +94,31 @@ def test_prefetch_gives_the_synchronous_results(sequence) -> None:  # type: igno
     assert not _frontend_threads()
 
 
+def test_reading_is_split_off_and_the_kernels_touch_no_file(
+    sequence, monkeypatch: pytest.MonkeyPatch
+) -> None:  # type: ignore[no-untyped-def]
+    # Frontend.read(k) is the only step reading the files; prepare(read(k)) gives what
+    # prepare(k) gives. From frame 3 the flood test needs earlier windows: read(3) counts them.
+    start, stop = 3, 9
+    direct = Frontend(sequence, "fusion", prefetch=0, start=start, stop=stop)
+    expected = [direct.process(k) for k in range(start, stop)]
+    split = Frontend(sequence, "fusion", prefetch=0, start=start, stop=stop)
+    raws = [split.read(k) for k in range(start, stop)]
+    assert [r.index for r in raws] == list(range(start, stop)) and raws[0].events is not None
+    assert Frontend(sequence, "frames", prefetch=0, stop=2).read(0).events is None  # no event read
+
+    def no_reading(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a file was read after Frontend.read")
+
+    for side in ("left", "right"):
+        monkeypatch.setattr(sequence.events[side], "window", no_reading)
+    monkeypatch.setattr(type(sequence.frames), "__getitem__", no_reading)
+    got = [split.finish(split.prepare(raw)) for raw in raws]
+    for a, b in zip(expected, got, strict=True):
+        assert np.array_equal(a.left, b.left) and np.array_equal(a.right, b.right)
+        assert (a.beta_left, a.bias, a.flood, a.e3ct_stats) == (b.beta_left, b.bias, b.flood, b.e3ct_stats)
+
+
 def test_worker_exceptions_reach_the_consumer_and_the_thread_is_joined(sequence) -> None:  # type: ignore[no-untyped-def]
     def counter(image: np.ndarray) -> int:
         counter.calls += 1  # type: ignore[attr-defined]

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import threading
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +50,7 @@ def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: P
     for name in ("keyframes.tum", "map.ply", "frames.csv", "timing.json", "config.toml", "run.log"):
         assert (tmp_path / name).is_file(), name
     timing = json.loads((tmp_path / "timing.json").read_text())
-    assert set(timing["stages"]) == {"frontend", "extraction", "tracking"}
+    assert set(timing["stages"]) == {"reading", "frontend", "extraction", "tracking"}
     assert timing["stages"]["tracking"]["count"] == 24
     config = _core.Config.from_file(tmp_path / "config.toml").to_dict()
     assert config["fusion"]["mode"] == mode
@@ -107,6 +109,33 @@ class _FailingExtractor:
         if self.calls == self.at:
             raise self.error
         return self.inner.extract(left, right)
+
+
+def test_the_run_reads_its_files_on_the_reader_thread_only(
+    sim_tiny: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # HDF5 decompression holds the GIL: it runs on the reader thread, ahead of the front-end's
+    # GIL-free kernels, and no other thread touches the files during the run.
+    from dhptam.datasets import sequence as files
+
+    readers: Counter[str] = Counter()
+    window, frame = files.EventSource.window, files.Frames.__getitem__
+
+    def counted_window(self: Any, *args: Any) -> Any:
+        readers["events on " + threading.current_thread().name] += 1
+        return window(self, *args)
+
+    def counted_frame(self: Any, *args: Any) -> Any:
+        readers["frames on " + threading.current_thread().name] += 1
+        return frame(self, *args)
+
+    monkeypatch.setattr(files.EventSource, "window", counted_window)
+    monkeypatch.setattr(files.Frames, "__getitem__", counted_frame)
+    result = run(sim_tiny, tmp_path / "out", mode="fusion", features="orb", progress=False)
+    n = result.frames
+    assert dict(readers) == {"events on dhptam-reader": 2 * n, "frames on dhptam-reader": n}
+    timing = json.loads((tmp_path / "out" / "timing.json").read_text())
+    assert timing["stages"]["reading"]["count"] == n
 
 
 def _patch_extractor(monkeypatch: pytest.MonkeyPatch, at: int, error: BaseException) -> None:

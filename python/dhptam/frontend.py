@@ -53,7 +53,7 @@ import numpy.typing as npt
 from . import _core
 from ._config import with_setting
 from ._prefetch import prefetched
-from .datasets import EventWindow, Sequence
+from .datasets import EventWindow, FramePair, Sequence
 from .errors import InputError
 from .events import e3ct, shared_scales
 from .fusion import choose_beta, fuse, warp_and_fuse, warp_to_frame
@@ -159,6 +159,18 @@ class PreparedFrame:
     frames: tuple[_U8, _U8]
     tensors: tuple[_F32, _F32] | None
     stats: E3ctStats | None
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """What :meth:`Frontend.read` takes from the sequence for frame ``index``: the stereo
+    frames as decoded (before rectification) and, outside mode ``frames``, the raw event
+    windows ``(left, right)`` of its window ``[t0_ns, t1_ns)``."""
+
+    index: int
+    pair: FramePair
+    window_ns: tuple[int, int]
+    events: tuple[EventWindow, EventWindow] | None
 
 
 @dataclass(frozen=True)
@@ -431,9 +443,13 @@ class Frontend:
         window, count, _ = self._rectified_events_counted(side, t0, t1)
         return window, count
 
-    def _rectified_events_counted(self, side: str, t0: int, t1: int) -> tuple[EventWindow, int, int]:
-        """The rectified window, its raw event count and its raw ON-event count."""
-        raw = self.sequence.events[side].window(t0, t1)
+    def _rectified_events_counted(
+        self, side: str, t0: int, t1: int, raw: EventWindow | None = None
+    ) -> tuple[EventWindow, int, int]:
+        """The rectified window, its raw event count and its raw ON-event count (``raw``: the
+        window already read, else it is read here)."""
+        if raw is None:
+            raw = self.sequence.events[side].window(t0, t1)
         x, y, t, p = self._rectifiers[side].apply(raw.x, raw.y, raw.t_ns, raw.p, t0, t1)
         return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw), int(np.count_nonzero(raw.p))
 
@@ -465,17 +481,22 @@ class Frontend:
             polarity=self.flood_polarity,
         )
 
-    def _event_tensors(self, t0: int, t1: int) -> tuple[list[_F32], E3ctStats]:
+    def _event_tensors(
+        self, t0: int, t1: int, raw: tuple[EventWindow, EventWindow] | None = None
+    ) -> tuple[list[_F32], E3ctStats]:
         """The raw E3CT of each event camera (left, right) for ``[t0, t1)`` and the window's
-        statistics (its shared normalisation scales included)."""
+        statistics (its shared normalisation scales included); ``raw``: the windows already
+        read (left, right), else they are read here."""
         cfg = self._events_cfg
         w, h = int(self.event_rect.width), int(self.event_rect.height)
         raw_counts: dict[str, int] = {}
         on_counts: dict[str, int] = {}
         tensors = []
         rect_counts: dict[str, int] = {}
-        for side in ("left", "right"):
-            window, raw_counts[side], on_counts[side] = self._rectified_events_counted(side, t0, t1)
+        for k, side in enumerate(("left", "right")):
+            window, raw_counts[side], on_counts[side] = self._rectified_events_counted(
+                side, t0, t1, None if raw is None else raw[k]
+            )
             rect_counts[side] = len(window)
             tensors.append(
                 e3ct(
@@ -608,16 +629,35 @@ class Frontend:
 
     # -- one frame ------------------------------------------------------------------------------
 
-    def prepare(self, index: int) -> PreparedFrame:
-        """The part of :meth:`process` that does not depend on the warp depth: the rectified
-        frames and, outside mode ``frames``, the raw E3CTs of frame ``index``'s window.
-        :meth:`finish` completes it; ``process(k) == finish(prepare(k))``."""
+    def read(self, index: int) -> RawFrame:
+        """Frame ``index``'s input as stored: the decoded stereo frames and, outside mode
+        ``frames``, both raw event windows. Only this step touches the sequence's files (HDF5
+        decompression holds the GIL), so ``dhptam run`` runs it on a thread of its own, ahead
+        of :meth:`prepare`, whose kernels release the GIL. One thread at a time may read."""
         pair = self.sequence.frames[index]
-        frames = (self._rectify_frame(pair.left, "left"), self._rectify_frame(pair.right, "right"))
+        window = self.window_ns(index)
         if self.mode == "frames":
-            return PreparedFrame(index, int(self.t_f_ns[index]), frames, None, None)
-        tensors, stats = self._event_tensors(*self.window_ns(index))
-        return PreparedFrame(index, int(self.t_f_ns[index]), frames, (tensors[0], tensors[1]), stats)
+            return RawFrame(index, pair, window, None)
+        left, right = (self.sequence.events[side].window(*window) for side in ("left", "right"))
+        if index == self.start and self.flood_ratio > 0.0:
+            # The flood test of the first frames compares with windows before the first frame:
+            # counted here, on the reading thread, so that no other thread reads the files.
+            for k in range(max(0, index - self.flood_history), index):
+                self._window_count(k)
+        return RawFrame(index, pair, window, (left, right))
+
+    def prepare(self, index: int | RawFrame) -> PreparedFrame:
+        """The part of :meth:`process` that does not depend on the warp depth: the rectified
+        frames and, outside mode ``frames``, the raw E3CTs of frame ``index``'s window
+        (``index`` may be what :meth:`read` returned for it). :meth:`finish` completes it;
+        ``process(k) == finish(prepare(k)) == finish(prepare(read(k)))``."""
+        raw = index if isinstance(index, RawFrame) else self.read(int(index))
+        k, pair = raw.index, raw.pair
+        frames = (self._rectify_frame(pair.left, "left"), self._rectify_frame(pair.right, "right"))
+        if self.mode == "frames" or raw.events is None:
+            return PreparedFrame(k, int(self.t_f_ns[k]), frames, None, None)
+        tensors, stats = self._event_tensors(*raw.window_ns, raw.events)
+        return PreparedFrame(k, int(self.t_f_ns[k]), frames, (tensors[0], tensors[1]), stats)
 
     def finish(self, prepared: PreparedFrame, depth_m: float | None = None) -> FrontendFrame:
         """Warps ``prepared``'s events through the plane at ``depth_m`` (default

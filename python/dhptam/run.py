@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 FORMATS = ("tum-vie", "vector", "vector-bag", "mvsec", "euroc")  # dhptam.datasets.FORMATS
 MODES = ("fusion", "frames", "events")
 FEATURES = ("orb", "sift", "r2d2", "superpoint")
-STAGES = ("frontend", "extraction", "tracking")
+STAGES = ("reading", "frontend", "extraction", "tracking")
 _NS = 1_000_000_000
 
 
@@ -644,24 +644,32 @@ def _track_all(
 
     # Without a tracked depth to wait for, the whole front-end runs on its own thread, ahead of
     # the extraction; with one, only the E3CT runs ahead and the rest waits for frame k−1.
-    def front(index: int) -> tuple[Any, Any, float]:
+    # Reading the files (HDF5 decompression, image decoding) runs on a thread of its own ahead
+    # of both: it holds the GIL, which the front-end's kernels release.
+    def read(index: int) -> tuple[Any, float]:
         t0 = time.perf_counter()
-        prepared = frontend.prepare(index)
-        rendered = None if feed.waits else render(prepared)
-        return prepared, rendered, time.perf_counter() - t0
+        return frontend.read(index), time.perf_counter() - t0
 
-    def extract(item: tuple[Any, Any, float]) -> tuple[Any, float, Any, Any, float, Any]:
-        prepared, rendered, t_front = item
+    def front(item: tuple[Any, float]) -> tuple[Any, Any, float, float]:
+        raw, t_read = item
+        t0 = time.perf_counter()
+        prepared = frontend.prepare(raw)
+        rendered = None if feed.waits else render(prepared)
+        return prepared, rendered, time.perf_counter() - t0, t_read
+
+    def extract(item: tuple[Any, Any, float, float]) -> tuple[Any, float, Any, Any, float, Any, float]:
+        prepared, rendered, t_front, t_read = item
         t0 = time.perf_counter()
         frame, bridge = render(prepared) if rendered is None else rendered
         t1 = time.perf_counter()
         left, right = extractor.extract(frame.left, frame.right)
         if bridge is not None:
             bridge = (bridge, extractor.extract(bridge.left, bridge.right))
-        return frame, t_front + t1 - t0, left, right, time.perf_counter() - t1, bridge
+        return frame, t_front + t1 - t0, left, right, time.perf_counter() - t1, bridge, t_read
 
     indices = iter(range(frontend.start, frontend.stop))
-    fused = prefetched(indices, front, "frontend", 2)
+    raw = prefetched(indices, read, "reader", 2)
+    fused = prefetched(raw, front, "frontend", 2)
     extracted = prefetched(fused, extract, "extraction", 2)
     bar = _progress(frontend.stop - frontend.start, progress, f"dhptam {frontend.mode}")
     with _interrupts_between_frames() as interrupt_pending:
@@ -730,7 +738,7 @@ def _track_frames(
     # (frame index, (left, right) features it was tracked with, their image model)
     last: tuple[int, Any, ImageModel] | None = None
 
-    for frame, t_front, left, right, t_extract, bridge in extracted:
+    for frame, t_front, left, right, t_extract, bridge, t_read in extracted:
         if interrupt_pending():
             raise KeyboardInterrupt
         if realtime:
@@ -765,6 +773,7 @@ def _track_frames(
                 "flood": int(frame.flood),
                 "warp_depth_m": f"{frame.warp_depth_m:.4f}",
                 "bridge": bridged,
+                "reading_s": round(t_read, 6),
                 "frontend_s": round(t_front, 6),
                 "extraction_s": round(t_extract, 6),
                 "tracking_s": round(t_track, 6),
