@@ -1,6 +1,6 @@
 """Ctrl-C during each stage of ``dhptam run``, and panics at the Python boundary (issue 10).
 
-A Ctrl-C raised in the front-end thread, the extraction thread (``test_run.py``), on the
+A Ctrl-C raised in the reader thread, the front-end thread, the extraction thread (``test_run.py``), on the
 tracking thread, while the back-end stops, or while the outputs are written stops the run
 cleanly: ``interrupted`` is set and every output holds the frames done so far. A real SIGINT
 to the ``dhptam run`` process exits with 130 and no traceback.
@@ -67,6 +67,15 @@ def test_ctrl_c_in_the_frontend_thread(
     result = run(sim_desk_run, tmp_path, mode="frames", progress=False)
     assert result.interrupted
     _check_outputs(tmp_path, 8)
+
+
+def test_ctrl_c_in_the_reader_thread(
+    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _interrupt_on_call(monkeypatch, dhptam.frontend.Frontend, "read", 7)
+    result = run(sim_desk_run, tmp_path, mode="fusion", progress=False)
+    assert result.interrupted
+    _check_outputs(tmp_path, 6)
 
 
 def test_ctrl_c_on_the_tracking_thread(

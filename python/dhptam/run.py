@@ -1,13 +1,15 @@
 """``dhptam run``: a sequence through the whole system, with every output written safely.
 
-The work is a three-stage pipeline, so that on a multi-core machine no stage waits for the
+The work is a four-stage pipeline, so that on a multi-core machine no stage waits for the
 others:
 
-1. the front-end (:class:`dhptam.frontend.Frontend`: event windows, E3CT, warp, β fusion) runs
-   on its own prefetch thread;
-2. feature extraction (torch or OpenCV, both release the GIL) runs on a second thread, one frame
+1. reading (:meth:`dhptam.frontend.Frontend.read`: decoding the frames, decompressing the event
+   windows; the only stage touching the files, and HDF5 holds the GIL) runs on its own thread;
+2. the front-end (:meth:`~dhptam.frontend.Frontend.prepare`/``finish``: rectification, E3CT,
+   warp, β fusion, kernels that release the GIL) runs on a second thread, behind the reading;
+3. feature extraction (torch or OpenCV, both release the GIL) runs on a third thread, one frame
    behind the front-end;
-3. tracking runs on the calling thread, while the back-end's mapping and loop-closing threads
+4. tracking runs on the calling thread, while the back-end's mapping and loop-closing threads
    run inside the Rust core.
 
 Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
