@@ -8,9 +8,9 @@ each extractor, and prints one table row per extractor:
 - end to end: wall time of the run divided by its frames (sequence opening and the first,
   warm-up frames included; the extractor is built and warmed up on one frame beforehand, so
   weight loading is not counted);
-- per stage: mean wall time of the front-end, extraction and tracking of one frame (they run
-  on their own threads and overlap, so they add up to more than the end-to-end time when the
-  cores are free);
+- per stage: mean wall time of the reading, front-end, extraction and tracking of one frame
+  (they run on their own threads and overlap, so they add up to more than the end-to-end time
+  when the cores are free);
 - CPU time of the process per frame (all threads, user + system): what the run costs the
   machine whatever else runs on it; on an idle box the wall time lies between CPU / cores and
   CPU;
@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from dhptam import features
-from dhptam.run import run
+from dhptam.run import STAGES, run
 
 PAPER_MS = {"superpoint": (3153.0, 4208.0), "r2d2": (8560.0, 9125.0)}
 REPO = Path(__file__).resolve().parents[1]
@@ -133,7 +133,7 @@ def main() -> None:
     print(f"# load average before: {os.getloadavg()[0]:.2f}\n")
     print(
         "| extractor | frames (tracked) | end to end ms/frame (fps) | CPU ms/frame "
-        "| front-end / extraction / tracking ms (mean) | paper CPU end to end / ours (wall; CPU) |"
+        "| reading / front-end / extraction / tracking ms (mean) | paper CPU end to end / ours (wall; CPU) |"
     )
     print("|---|---|---|---|---|---|")
     viz_seconds = time_viz_frames() if args.viz != "none" else {}
@@ -163,7 +163,7 @@ def main() -> None:
                 for values in viz_seconds.values():
                     values.clear()
         ms = 1e3 * result.seconds / max(result.frames, 1)
-        means = [stages[s].get("mean_ms", float("nan")) for s in ("frontend", "extraction", "tracking")]
+        means = [stages[s].get("mean_ms", float("nan")) for s in STAGES]
         per_stage = " / ".join(f"{m:.0f}" for m in means)
         ratio = ""
         if family:
