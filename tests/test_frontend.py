@@ -26,7 +26,7 @@ def sequence(sim_tiny: Path):  # type: ignore[no-untyped-def]
 
 
 def _frontend_threads() -> list[threading.Thread]:
-    return [t for t in threading.enumerate() if t.name == "dhptam-frontend"]
+    return [t for t in threading.enumerate() if t.name in ("dhptam-frontend", "dhptam-reader")]
 
 
 @pytest.mark.parametrize("mode", MODES)
@@ -144,7 +144,7 @@ def test_stopping_early_joins_the_prefetch_thread(sequence) -> None:  # type: ig
     fe = Frontend(sequence, "fusion", prefetch=2)
     it = iter(fe)
     assert next(it).index == 0
-    assert _frontend_threads()
+    assert {t.name for t in _frontend_threads()} == {"dhptam-frontend", "dhptam-reader"}
     it.close()  # type: ignore[attr-defined]
     assert not _frontend_threads()
 

@@ -35,10 +35,11 @@ into :meth:`Frontend.prepare` (frames, E3CT: no depth needed) and :meth:`Fronten
 "tracked"`` does the latter with the median depth of the map points the previous frame was
 tracked with, rounded by :meth:`Frontend.quantised_depth` so the warp maps are reused.
 
-A background thread runs ``prefetch`` frames ahead through a bounded queue, so the front-end of
-frame k+1 overlaps the consumer's tracking of frame k; the Rust kernels release the GIL.
-Exceptions raised in the thread are re-raised in the consumer; :meth:`Frontend.close` stops
-and joins the thread. ``prefetch=0`` runs everything in the consumer's thread.
+Two background threads run ``prefetch`` frames ahead through bounded queues, one reading the
+files (:meth:`Frontend.read`; HDF5 decompression holds the GIL), one running the kernels (which
+release it), so the front-end of frame k+1 overlaps the consumer's tracking of frame k.
+Exceptions raised in the threads are re-raised in the consumer; :meth:`Frontend.close` stops
+and joins them. ``prefetch=0`` runs everything in the consumer's thread.
 """
 
 from __future__ import annotations
@@ -757,16 +758,16 @@ class Frontend:
                 yield self.process(k)
             return
         self.close()
-        self._prefetch = prefetched(
-            iter(range(self.start, self.stop)), self.process, "frontend", self.prefetch
-        )
+        # The files are read on a thread of their own (HDF5 holds the GIL), the kernels on another.
+        raw = prefetched(iter(range(self.start, self.stop)), self.read, "reader", self.prefetch)
+        self._prefetch = prefetched(raw, lambda r: self.finish(self.prepare(r)), "frontend", self.prefetch)
         try:
             yield from self._prefetch
         finally:
             self.close()
 
     def close(self) -> None:
-        """Stops the prefetch thread (if any) and joins it."""
+        """Stops the prefetch threads (if any) and joins them."""
         stage, self._prefetch = self._prefetch, None
         if stage is not None:
             stage.close()
