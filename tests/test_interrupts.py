@@ -60,22 +60,24 @@ def _check_outputs(out: Path, frames: int) -> None:
     assert not list(out.glob(".*tmp*")), "temporary files left behind"
 
 
-def test_ctrl_c_in_the_frontend_thread(
-    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize(
+    ("stage", "method", "mode", "at"),
+    [("front-end", "prepare", "frames", 9), ("reader", "read", "fusion", 7)],
+)
+def test_ctrl_c_in_the_frontend_and_reader_threads(
+    stage: str,
+    method: str,
+    mode: str,
+    at: int,
+    sim_desk_run: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    _interrupt_on_call(monkeypatch, dhptam.frontend.Frontend, "prepare", 9)
-    result = run(sim_desk_run, tmp_path, mode="frames", progress=False)
-    assert result.interrupted
-    _check_outputs(tmp_path, 8)
-
-
-def test_ctrl_c_in_the_reader_thread(
-    sim_desk_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    _interrupt_on_call(monkeypatch, dhptam.frontend.Frontend, "read", 7)
-    result = run(sim_desk_run, tmp_path, mode="fusion", progress=False)
-    assert result.interrupted
-    _check_outputs(tmp_path, 6)
+    # Call `at` is frame `at` − 1 on that stage's thread: the frames before it are kept.
+    _interrupt_on_call(monkeypatch, dhptam.frontend.Frontend, method, at)
+    result = run(sim_desk_run, tmp_path, mode=mode, progress=False)
+    assert result.interrupted, stage
+    _check_outputs(tmp_path, at - 1)
 
 
 def test_ctrl_c_on_the_tracking_thread(
