@@ -17,7 +17,11 @@ pool of the process: set ``RAYON_NUM_THREADS`` to pin it (the script prints it).
 extension built from an earlier commit), loaded side by side in the same process and checked
 equal too: the ratio against the previous kernel comes from the same run.
 
-    python benches/bench_e3ct.py [--events 1000000] [--repeats 7] [--previous OLD/_core.abi3.so]
+The ``stream`` rows run ``--stream`` distinct windows in turn (``--repeats`` passes, three
+tensors kept alive, median per window), as the front-end does: the first rows repeat one
+window, whose arrays stay in cache and whose freed tensor the allocator hands back at once.
+
+    python benches/bench_e3ct.py [--events 1000000] [--repeats 7] [--stream 12] [--previous OLD/_core.abi3.so]
 """
 
 from __future__ import annotations
@@ -108,11 +112,33 @@ def best_of(fn, repeats: int) -> tuple[float, float]:
     return min(wall), min(cpu)
 
 
+def stream_median(
+    module: ModuleType, windows: list[tuple[np.ndarray, ...]], rounds: int
+) -> tuple[float, float]:
+    """Median wall and CPU time per window over ``rounds`` passes through ``windows``, the last
+    three tensors kept alive (the front-end holds a few frames in flight)."""
+    wall, cpu, alive = [], [], []
+    for _ in range(rounds):
+        for events in windows:
+            t0, c0 = time.perf_counter(), time.process_time()
+            alive.append(module._e3ct(*events, W, H, 0, SPAN_NS, 0.5, 30.0, 3, "both"))
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            alive = alive[-3:]
+    return float(np.median(wall)), float(np.median(cpu))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--events", type=int, default=1_000_000)
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--previous", help="another build of dhptam._core to time as the previous kernel")
+    ap.add_argument(
+        "--stream",
+        type=int,
+        default=12,
+        help="distinct windows of the stream rows (median per window); 0: none",
+    )
     args = ap.parse_args()
     x, y, t, p = window(args.events)
 
@@ -125,14 +151,23 @@ def main() -> None:
 
     t_ours = best_of(ours, args.repeats)
     rows = [("dhptam e3ct", t_ours)]
-    if args.previous:
-        previous = load_previous(args.previous)
+    previous = load_previous(args.previous) if args.previous else None
+    if previous is not None:
 
         def theirs() -> np.ndarray:
             return previous._e3ct(x, y, t, p, W, H, 0, SPAN_NS, 0.5, 30.0, 3, "both")
 
         np.testing.assert_allclose(mine, theirs(), rtol=1e-5, atol=1e-6, err_msg="previous kernel")
         rows.append(("previous kernel", best_of(theirs, args.repeats)))
+    if args.stream:
+        # A stream of distinct windows with a few tensors alive, as in the front-end: the cache
+        # is cold and the allocator reuses freed memory, unlike the same window repeated.
+        windows = [window(args.events, seed) for seed in range(100, 100 + args.stream)]
+        modules = [("dhptam e3ct, stream", _core)] + (
+            [("previous kernel, stream", previous)] if previous else []
+        )
+        for name, module in modules:
+            rows.append((name, stream_median(module, windows, args.repeats)))
     for name, fn in (("numpy add.at", numpy_add_at), ("numpy bincount", numpy_bincount)):
         rows.append((name, best_of(lambda fn=fn: fn(x, y, t, p), max(3, args.repeats // 2))))
     print(

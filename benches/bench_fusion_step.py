@@ -16,8 +16,9 @@ for these sizes and reused (the first call's time is printed apart).
 
 ``--previous PATH`` also runs the step with another build of ``dhptam._core`` (e.g. the
 extension built from main before this work), loaded side by side in the same process, the
-way main's front-end ran it before the blend moved into the warp (scales, β, the warp with
-the scales, then ``_fuse``); the warped tensors and the fused images of both are checked
+way that build's front-end ran it (a build from before the blend moved into the warp, without
+``_warp_and_fuse``: scales, β, the warp with the scales, then ``_fuse``); the warped tensors
+and the fused images of both are checked
 equal bit for bit first, and the table gets the previous build's columns and the ratios from
 the same run (the two steps alternate).
 
@@ -136,7 +137,7 @@ def main() -> None:
     runs, names = [ours], ["dhptam"]
     if args.previous:
         previous = load_previous(args.previous)
-        theirs = step(previous, False)
+        theirs = step(previous, hasattr(previous, "_warp_and_fuse"))
         _, want = theirs()
         for a, b in zip(mine, want, strict=True):
             np.testing.assert_array_equal(a.view(np.uint8), b.view(np.uint8))

@@ -9,8 +9,8 @@ use std::sync::Mutex;
 use dhptam_core::events::{self, E3ctParams, E3ctWorkspace, EventSlice, PolarityMode};
 use numpy::ndarray::{Array3, ArrayD, IxDyn};
 use numpy::{
-    Element, IntoPyArray, PyArray3, PyArrayDyn, PyReadonlyArray1, PyReadonlyArrayDyn,
-    PyUntypedArrayMethods,
+    Element, IntoPyArray, PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray1,
+    PyReadonlyArrayDyn, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 
@@ -94,15 +94,44 @@ pub fn _e3ct<'py>(
         channels,
         polarity: parse_polarity(polarity)?,
     };
-    image(py, &(x, y, t_ns, p), width, height, |s| {
-        let mut out = vec![0f32; width as usize * height as usize * params.output_channels()];
+    let slice = EventSlice::new(
+        exact(&x, "x")?,
+        exact(&y, "y")?,
+        exact(&t_ns, "t_ns")?,
+        exact(&p, "p")?,
+    )
+    .py()?;
+    let image = numpy_image(py, width, height, params.output_channels());
+    let mut view = image.readwrite();
+    let out = view.as_slice_mut()?;
+    py.detach_guarded("events::e3ct", || {
         with_workspace(|workspace| {
             events::e3ct_into(
-                s, width, height, t_start_ns, t_end_ns, &params, workspace, &mut out,
+                &slice, width, height, t_start_ns, t_end_ns, &params, workspace, out,
             )
         })
-        .map(|()| out)
-    })
+    })?
+    .py()?;
+    drop(view);
+    Ok(image)
+}
+
+/// An uninitialised `(height, width, channels)` float32 array from numpy's allocator, for
+/// `e3ct_into`, which writes every value (each band zeroes its rows, in parallel, before
+/// adding). A zeroed `Vec` cost a serial memset of the whole 11 MB tensor (1280×720×3) before
+/// the kernel: ~2 ms per window on the 2-core box (BENCHMARKS, "E3CT output without the
+/// zeroing").
+fn numpy_image(
+    py: Python<'_>,
+    width: u32,
+    height: u32,
+    channels: usize,
+) -> Bound<'_, PyArray3<f32>> {
+    let dims = [height as usize, width as usize, channels];
+    // SAFETY: the caller hands the whole array to `e3ct_into`, which overwrites every value
+    // (or fails before writing any), before the array reaches Python; on an error it is
+    // dropped unread.
+    unsafe { PyArray3::<f32>::new(py, dims, false) }
 }
 
 /// Runs `f` with a workspace from [`WORKSPACES`] (a fresh one when the pool is empty) and
