@@ -39,12 +39,24 @@ fn parse_polarity(polarity: &str) -> PyResult<PolarityMode> {
     }
 }
 
-type Window<'py> = (
+pub(crate) type Window<'py> = (
     PyReadonlyArray1<'py, u16>,
     PyReadonlyArray1<'py, u16>,
     PyReadonlyArray1<'py, i64>,
     PyReadonlyArray1<'py, i8>,
 );
+
+/// The four event arrays of `window` borrowed in place as one [`EventSlice`] (equal lengths,
+/// contiguous; errors name the array).
+pub(crate) fn event_slice<'a>(window: &'a Window<'_>) -> PyResult<EventSlice<'a>> {
+    EventSlice::new(
+        exact(&window.0, "x")?,
+        exact(&window.1, "y")?,
+        exact(&window.2, "t_ns")?,
+        exact(&window.3, "p")?,
+    )
+    .py()
+}
 
 /// Runs `f` on the borrowed window with the GIL released and shapes its output (H, W, C).
 fn image<'py>(
@@ -54,13 +66,7 @@ fn image<'py>(
     height: u32,
     f: impl FnOnce(&EventSlice<'_>) -> dhptam_core::Result<Vec<f32>> + Send,
 ) -> PyResult<Bound<'py, PyArray3<f32>>> {
-    let slice = EventSlice::new(
-        exact(&window.0, "x")?,
-        exact(&window.1, "y")?,
-        exact(&window.2, "t_ns")?,
-        exact(&window.3, "p")?,
-    )
-    .py()?;
+    let slice = event_slice(window)?;
     let data = py.detach_guarded("events::image", || f(&slice))?.py()?;
     let pixels = width as usize * height as usize;
     let channels = data.len().checked_div(pixels).unwrap_or(0);
@@ -94,13 +100,8 @@ pub fn _e3ct<'py>(
         channels,
         polarity: parse_polarity(polarity)?,
     };
-    let slice = EventSlice::new(
-        exact(&x, "x")?,
-        exact(&y, "y")?,
-        exact(&t_ns, "t_ns")?,
-        exact(&p, "p")?,
-    )
-    .py()?;
+    let window = (x, y, t_ns, p);
+    let slice = event_slice(&window)?;
     let image = numpy_image(py, width, height, params.output_channels());
     let mut view = image.readwrite();
     let out = view.as_slice_mut()?;

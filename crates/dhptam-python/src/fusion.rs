@@ -1,7 +1,6 @@
 //! Fusion of events and frames: the online β, the blend, and the event→frame warp.
 
 use dhptam_core::config::FusionConfig;
-use dhptam_core::events::EventSlice;
 use std::sync::{Arc, Mutex};
 
 use dhptam_core::fusion::{self, Depth, EventFrameWarp, EventRectifier, WarpMap};
@@ -18,7 +17,6 @@ use crate::arrays;
 use crate::config::PyConfig;
 use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
-use crate::events::exact;
 use crate::geometry::PySe3;
 use crate::stereo::{parse_side, PyRectifiedStereo};
 
@@ -329,13 +327,8 @@ impl PyEventRectifier {
         t_start_ns: i64,
         t_end_ns: i64,
     ) -> PyResult<RectifiedArrays<'py>> {
-        let slice = EventSlice::new(
-            exact(&x, "x")?,
-            exact(&y, "y")?,
-            exact(&t_ns, "t_ns")?,
-            exact(&p, "p")?,
-        )
-        .py()?;
+        let window = (x, y, t_ns, p);
+        let slice = crate::events::event_slice(&window)?;
         let out = py
             .detach_guarded("fusion::apply", || {
                 self.inner.apply(&slice, t_start_ns, t_end_ns)
