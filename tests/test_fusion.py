@@ -17,7 +17,8 @@ def frame(base: float, gradient: float) -> np.ndarray:
 
 def test_beta_switches_to_dvs_on_dark_and_bright_frames_and_back():
     normal, dark, bright = frame(40, 180), frame(0, 30), frame(230, 25)
-    decisions = [choose_beta(f) for f in (normal, dark, normal, bright, normal)]
+    paper = Config.from_toml("[fusion]\naps_beta_max = 1.0\n")  # min(r, 1 - r) uncapped
+    decisions = [choose_beta(f, config=paper) for f in (normal, dark, normal, bright, normal)]
     assert [d.bias for d in decisions] == ["aps", "dvs", "aps", "dvs", "aps"]
     for f, d in zip((normal, dark, normal, bright, normal), decisions, strict=True):
         r = f.mean() / f.max()
@@ -30,6 +31,20 @@ def test_beta_switches_to_dvs_on_dark_and_bright_frames_and_back():
     assert choose_beta(normal, config=Config.from_toml('[fusion]\nmode = "events"\n')).bias == "events"
     with pytest.raises(ConfigError):
         Config.from_toml("[fusion]\nmax_clipped_fraction = 1.5\n")
+
+
+def test_the_default_caps_beta_of_well_exposed_frames_only():
+    normal, dark = frame(40, 180), frame(0, 30)
+    r = normal.mean() / normal.max()
+    assert min(r, 1 - r) > 0.35
+    d = choose_beta(normal)
+    assert (d.bias, d.beta) == ("aps", 0.3)
+    paper = Config.from_toml("[fusion]\naps_beta_max = 1.0\n")
+    for f, count in ((dark, None), (normal, 10)):
+        capped, plain = choose_beta(f, count), choose_beta(f, count, paper)
+        assert capped.bias == plain.bias == "dvs" and capped.beta == plain.beta >= 0.5
+    with pytest.raises(ConfigError, match="aps_beta_max"):
+        Config.from_toml("[fusion]\naps_beta_max = 1.5\n")
 
 
 def test_fuse_blends_frame_and_event_intensity():

@@ -206,6 +206,10 @@ config_section! {
         mode: FusionMode = FusionMode::Fusion,
         /// Upper bound on β (the paper's example caps it at 0.3); 1 leaves it uncapped.
         beta_max: f64 = 1.0,
+        /// Upper bound on β of APS-biased frames only (well-exposed frames with features),
+        /// the paper's example cap of 0.3 applied where it does not undo the mode: DVS-biased
+        /// frames keep their β ≥ 1/2. 1 leaves min(r, 1 − r) uncapped (docs/FUSION.md).
+        aps_beta_max: f64 = 0.3,
         /// Pixels at or below this 8-bit value count as under-exposed.
         dark_level: f64 = 20.0,
         /// Pixels at or above this 8-bit value count as over-exposed.
@@ -826,6 +830,12 @@ impl FusionConfig {
             (0.0..=1.0).contains(&self.beta_max),
             "a weight in [0, 1]",
             self.beta_max,
+        )?;
+        check(
+            "fusion.aps_beta_max",
+            (0.0..=1.0).contains(&self.aps_beta_max),
+            "a weight in [0, 1]",
+            self.aps_beta_max,
         )?;
         check(
             "fusion.dark_level/bright_level",

@@ -337,7 +337,11 @@ fn ratio(f: &[u8]) -> f64 {
 
 #[test]
 fn beta_switches_to_dvs_bias_on_dark_and_bright_frames_and_back() {
-    let config = FusionConfig::default();
+    // The paper's formula, without the cap on APS-biased frames (tested below).
+    let config = FusionConfig {
+        aps_beta_max: 1.0,
+        ..FusionConfig::default()
+    };
     let normal = frame(40.0, 180.0);
     let dark = frame(0.0, 30.0);
     let bright = frame(230.0, 25.0);
@@ -388,6 +392,51 @@ fn beta_switches_to_dvs_bias_on_dark_and_bright_frames_and_back() {
     }
     assert_eq!(choose_beta(&[0, 0], None, &config).unwrap().ratio, 0.0);
     assert!(choose_beta(&[], None, &config).is_err());
+}
+
+#[test]
+fn the_aps_cap_bounds_only_aps_biased_frames() {
+    let normal = frame(40.0, 180.0);
+    let dark = frame(0.0, 30.0);
+    let r = ratio(&normal);
+    assert!(
+        r.min(1.0 - r) > 0.35,
+        "the test frame's uncapped β is {}",
+        r.min(1.0 - r)
+    );
+    // The default caps the events' weight in a well-exposed frame at 0.3 …
+    let d = choose_beta(&normal, None, &FusionConfig::default()).unwrap();
+    assert_eq!((d.bias, d.beta), (Bias::Aps, 0.3));
+    // … and leaves a failing frame's DVS-biased β ≥ 1/2 alone.
+    let uncapped = FusionConfig {
+        aps_beta_max: 1.0,
+        ..FusionConfig::default()
+    };
+    for f in [&dark, &normal] {
+        let count = if std::ptr::eq(f, &normal) {
+            Some(10)
+        } else {
+            None
+        };
+        let capped = choose_beta(f, count, &FusionConfig::default()).unwrap();
+        let plain = choose_beta(f, count, &uncapped).unwrap();
+        assert_eq!(capped.bias, Bias::Dvs);
+        assert_eq!(capped.beta, plain.beta);
+        assert!(capped.beta >= 0.5);
+    }
+    // A cap above min(r, 1 − r) changes nothing; β_max still bounds both modes.
+    let loose = FusionConfig {
+        aps_beta_max: 0.49,
+        ..FusionConfig::default()
+    };
+    let d = choose_beta(&normal, None, &loose).unwrap();
+    assert!((d.beta - r.min(1.0 - r)).abs() < 1e-12);
+    let both = FusionConfig {
+        beta_max: 0.2,
+        ..FusionConfig::default()
+    };
+    assert_eq!(choose_beta(&normal, None, &both).unwrap().beta, 0.2);
+    assert_eq!(choose_beta(&dark, None, &both).unwrap().beta, 0.2);
 }
 
 #[test]

@@ -3,10 +3,14 @@
 //! With `r = mean(C) / max(C)` of the frame:
 //!
 //! ```text
-//! APS-biased (the frame is usable):    β = min(r, 1 − r)   ≤ 1/2
+//! APS-biased (the frame is usable):    β = min(r, 1 − r, aps_β_max)
 //! DVS-biased (the frame fails):        β = max(r, 1 − r)   ≥ 1/2
 //! then β = min(β, β_max)
 //! ```
+//!
+//! `aps_β_max` (`[fusion] aps_beta_max`, 0.3) caps the events' weight in well-exposed
+//! frames: uncapped, min(r, 1 − r) is about 0.45 for a typical frame, and the event edges
+//! blended in at that weight cost tracking accuracy under normal light (docs/FUSION.md).
 //!
 //! The frame "fails" when it is under- or over-exposed — more than `max_clipped_fraction` of
 //! its pixels at or below `dark_level` or at or above `bright_level` — or when the caller
@@ -37,7 +41,7 @@ pub enum FusionMode {
 /// Why β has its value.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Bias {
-    /// The frame is usable: β = min(r, 1 − r).
+    /// The frame is usable: β = min(r, 1 − r, aps_β_max).
     Aps,
     /// The frame is under/over-exposed or yields too few features: β = max(r, 1 − r).
     Dvs,
@@ -129,7 +133,8 @@ pub fn choose_beta(
             if too_few || clipped_fraction > config.max_clipped_fraction {
                 (ratio.max(1.0 - ratio).min(config.beta_max), Bias::Dvs)
             } else {
-                (ratio.min(1.0 - ratio).min(config.beta_max), Bias::Aps)
+                let beta = ratio.min(1.0 - ratio).min(config.aps_beta_max);
+                (beta.min(config.beta_max), Bias::Aps)
             }
         }
     };
