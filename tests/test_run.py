@@ -36,10 +36,11 @@ def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: P
     assert result.states.get("lost", 0) == 0
     assert frames == result.frames
     ev = _ate(tmp_path, sim_desk_run)
-    # Measured on this sequence (seed 1, ORB, synchronous, 2026-11-27): ATE 1.10 % of the path
-    # in fusion, 0.65 % in frames. The bounds leave a margin of about half; a broken tracker is
-    # off by tens of percent.
-    assert ev.ate_percent_of_path < {"fusion": 1.6, "frames": 1.0}[mode], ev.to_dict()
+    # Measured on this sequence (seed 1, ORB, synchronous, 2026-11-28): ATE 0.76 % of the path
+    # in fusion (1.09 % with the paper's uncapped β of well-exposed frames, [fusion]
+    # aps_beta_max = 1), 0.64 % in frames. The bounds leave a margin of about half; a broken
+    # tracker is off by tens of percent.
+    assert ev.ate_percent_of_path < {"fusion": 1.2, "frames": 1.0}[mode], ev.to_dict()
     # Normal light: no fusion-mode switch, so no bridge keyframe and no new map segment.
     # No lighting change either: no flood window, no predicted frame.
     assert result.tracking == {
