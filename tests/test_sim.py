@@ -286,3 +286,37 @@ def test_mixed_camera_models_round_trip(tmp_path: Path):
         for key, cam in seq.calibration.cameras.items():
             assert np.allclose(cam.params, expected[key].params)
         assert len(seq.frames) == 2 and seq.frames[1].left.std() > 5
+
+
+def test_a_shared_sensor_rig_reads_frames_and_events_from_the_same_pixels(tmp_path: Path):
+    """The DAVIS-like rigs (MVSEC's kind of sensor): each event camera is its frame camera, so
+    the front-end's event→frame warp is the identity, the event images need no disparity
+    correction, and a run goes through end to end."""
+    from dhptam.frontend import Frontend
+    from dhptam.run import run
+
+    assert not RIGS["tiny"].shared_sensor and RIGS["davis"].shared_sensor
+    assert PRESETS["davis-hdr"].rig == "davis"
+    summary = simulate(tmp_path, preset="tiny-davis", duration_s=0.3, seed=1)
+    with load_tumvie(summary.path) as seq:
+        cams = seq.calibration.cameras
+        for side in ("left", "right"):
+            frame, event = cams[f"frame_{side}"], cams[f"event_{side}"]
+            assert (event.model, event.width, event.height) == (frame.model, 128, 96) == ("kb4", 128, 96)
+            assert np.array_equal(event.params, frame.params)
+            pose_f = seq.calibration.imu_from_cam[f"frame_{side}"].matrix()
+            pose_e = seq.calibration.imu_from_cam[f"event_{side}"].matrix()
+            assert np.allclose(pose_f, pose_e, atol=1e-12)
+        fe = Frontend(seq, "fusion", prefetch=0)
+        pixels = np.array([[10.0, 20.0], [64.0, 48.0], [120.5, 90.25]])
+        for depth in (0.0, 0.7, 3.0):
+            assert np.allclose(fe.warp_event_pixels("left", pixels, depth_m=depth), pixels, atol=1e-6)
+            assert np.allclose(fe.warp_event_pixels("right", pixels, depth_m=depth), pixels, atol=1e-6)
+        assert fe.event_disparity(2.0) == (1.0, 0.0)
+        frame = fe.process(3)
+        assert frame.left.shape == (96, 128) and frame.events_left is not None
+        assert frame.events_left.shape[:2] == (96, 128)
+    result = run(
+        summary.path, tmp_path / "out", mode="fusion", features="orb", progress=False, threaded=False
+    )
+    assert result.frames == 6 and (tmp_path / "out" / "trajectory.tum").is_file()

@@ -6,7 +6,9 @@ each event camera 5.5 cm from the centre and 3 cm below, all looking forward wit
 mounting rotations, like the TUM-VIE head. Cameras are Kannala–Brandt (kb4), the model of the
 TUM-VIE calibration files, except in the ``*-mixed`` rigs (radtan frame cameras, pinhole
 event cameras); the full-size rig has TUM-VIE's resolutions (1024×1024 frames, 1280×720
-events), the smaller ones scale the intrinsics with the resolution.
+events), the smaller ones scale the intrinsics with the resolution. The ``*davis`` rigs are a
+stereo pair of DAVIS-like sensors instead (as MVSEC's): each sensor reads frames and events
+from the same pixels, so an event camera is its frame camera (same intrinsics, size and pose).
 """
 
 from __future__ import annotations
@@ -22,6 +24,9 @@ _KB4_EVENT = (-0.0308, 0.0151, -0.0139, 0.0040)
 # Radial-tangential distortion [k1, k2, p1, p2, k3] of the mixed rigs' frame cameras.
 _RADTAN_FRAME = (-0.12, 0.03, 2e-4, -3e-4, 0.0)
 _FRAME_FULL = (747.3, 747.4, 490.8, 506.1, 1024, 1024)
+# A DAVIS346-like sensor (346×260 pixels, about 75° across) with a mild equidistant (kb4) lens.
+_DAVIS_FULL = (226.0, 226.0, 172.5, 129.5, 346, 260)
+_KB4_DAVIS = (-0.045, 0.010, -0.030, 0.010)
 _EVENT_FULL = (1049.1, 1049.2, 634.3, 363.0, 1280, 720)
 
 CAMERA_ORDER = ("frame_left", "frame_right", "event_left", "event_right")
@@ -33,12 +38,14 @@ IMU_FROM_MARKER = SE3(SO3.exp([0.1, -0.2, 0.3]), [0.02, -0.08, 0.05])
 
 @dataclass(frozen=True)
 class RigSpec:
-    """A rig size: the frame and event resolutions."""
+    """A rig size: the frame and event resolutions; ``shared_sensor``: frames and events come
+    from the same pixels (DAVIS-like sensors), the event cameras are the frame cameras."""
 
     name: str
     frame_size: tuple[int, int]
     event_size: tuple[int, int]
     mixed_models: bool = False
+    shared_sensor: bool = False
 
     def cameras(self) -> dict[str, Camera]:
         """The four cameras, intrinsics scaled from the full-size rig."""
@@ -55,6 +62,11 @@ class RigSpec:
             params = [fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, *k]
             return Camera(model, params, size[0], size[1])
 
+        if self.shared_sensor:
+            if self.frame_size != self.event_size:
+                raise ValueError(f"rig {self.name}: a shared sensor has one resolution")
+            sensor = scaled("kb4", _DAVIS_FULL, self.frame_size, _KB4_DAVIS)
+            return {name: sensor for name in CAMERA_ORDER}
         if self.mixed_models:
             frame = scaled("radtan", _FRAME_FULL, self.frame_size, _RADTAN_FRAME)
             event = scaled("pinhole", _EVENT_FULL, self.event_size, ())
@@ -65,9 +77,13 @@ class RigSpec:
 
     def imu_from_cam(self) -> dict[str, SE3]:
         """Camera poses on the rig (metres; camera axes roughly along the IMU's)."""
+        left = SE3(SO3.exp([0.004, 0.006, -0.002]), [-0.05, 0.0, 0.0])
+        right = SE3(SO3.exp([-0.003, -0.005, 0.001]), [0.05, 0.001, 0.0])
+        if self.shared_sensor:
+            return {"frame_left": left, "frame_right": right, "event_left": left, "event_right": right}
         return {
-            "frame_left": SE3(SO3.exp([0.004, 0.006, -0.002]), [-0.05, 0.0, 0.0]),
-            "frame_right": SE3(SO3.exp([-0.003, -0.005, 0.001]), [0.05, 0.001, 0.0]),
+            "frame_left": left,
+            "frame_right": right,
             "event_left": SE3(SO3.exp([0.006, 0.002, 0.003]), [-0.055, 0.03, 0.002]),
             "event_right": SE3(SO3.exp([-0.002, -0.004, -0.002]), [0.055, 0.031, 0.001]),
         }
@@ -79,6 +95,8 @@ RIGS = {
     "tiny": RigSpec("tiny", (128, 128), (128, 72)),
     "small-mixed": RigSpec("small-mixed", (320, 320), (320, 180), mixed_models=True),
     "tiny-mixed": RigSpec("tiny-mixed", (128, 128), (128, 72), mixed_models=True),
+    "davis": RigSpec("davis", (346, 260), (346, 260), shared_sensor=True),
+    "tiny-davis": RigSpec("tiny-davis", (128, 96), (128, 96), shared_sensor=True),
 }
 
 
@@ -130,6 +148,22 @@ PRESETS = {
         Preset("tiny", "tiny", "desk_spiral", "hdr", 1.0, "a 1 s 128-pixel sequence for tests"),
         Preset(
             "tiny-mixed", "tiny-mixed", "desk_spiral", "normal", 1.0, "tiny, radtan frames, pinhole events"
+        ),
+        Preset(
+            "davis-hdr",
+            "davis",
+            "desk_spiral",
+            "hdr",
+            4.0,
+            "HDR desk sequence on a DAVIS346-like stereo pair (frames and events from the same pixels)",
+        ),
+        Preset(
+            "tiny-davis",
+            "tiny-davis",
+            "desk_spiral",
+            "normal",
+            1.0,
+            "tiny, frames and events from the same pixels",
         ),
     )
 }
