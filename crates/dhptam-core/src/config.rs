@@ -196,6 +196,15 @@ config_section! {
         /// Each channel is divided by this percentile of its non-zero values (pooled over the
         /// left and right tensors of a stereo window) and clipped to [0, 1]; in (0, 100].
         normalise_percentile: f64 = 99.0,
+        /// Hot pixels (raw pixels firing on their own; `events::hot`, docs/E3CT.md): a pixel's
+        /// events are dropped before any representation while it fires at least
+        /// `hot_pixel_min_rate_hz` and this many times more than each of its 8 neighbours;
+        /// 0 turns the detector off, otherwise > 1.
+        hot_pixel_ratio: f64 = 4.0,
+        /// The least event rate of a hot pixel, Hz.
+        hot_pixel_min_rate_hz: f64 = 20.0,
+        /// Time constant of the per-pixel event rates the detector compares, seconds.
+        hot_pixel_time_s: f64 = 1.0,
     }
 }
 
@@ -819,6 +828,25 @@ impl EventsConfig {
             self.normalise_percentile > 0.0 && self.normalise_percentile <= 100.0,
             "a percentile in (0, 100]",
             self.normalise_percentile,
+        )?;
+        check(
+            "events.hot_pixel_ratio",
+            self.hot_pixel_ratio == 0.0
+                || (self.hot_pixel_ratio.is_finite() && self.hot_pixel_ratio > 1.0),
+            "0 (off) or a ratio above 1",
+            self.hot_pixel_ratio,
+        )?;
+        check(
+            "events.hot_pixel_min_rate_hz",
+            self.hot_pixel_min_rate_hz.is_finite() && self.hot_pixel_min_rate_hz > 0.0,
+            "a positive rate in Hz",
+            self.hot_pixel_min_rate_hz,
+        )?;
+        check(
+            "events.hot_pixel_time_s",
+            self.hot_pixel_time_s.is_finite() && self.hot_pixel_time_s > 0.0,
+            "a positive time in seconds",
+            self.hot_pixel_time_s,
         )
     }
 }
@@ -1110,6 +1138,22 @@ mod tests {
         );
         let err = Config::from_toml_str("[log]\nlevel = \"loud\"\n", "x.toml").unwrap_err();
         assert!(err.to_string().contains("loud"), "{err}");
+    }
+
+    #[test]
+    fn hot_pixel_settings_are_checked() {
+        let off = Config::from_toml_str("[events]\nhot_pixel_ratio = 0.0\n", "h.toml").unwrap();
+        assert_eq!(off.events.hot_pixel_ratio, 0.0);
+        for bad in [
+            "hot_pixel_ratio = 1.0",
+            "hot_pixel_ratio = -2.0",
+            "hot_pixel_min_rate_hz = 0.0",
+            "hot_pixel_time_s = -1.0",
+        ] {
+            let err = Config::from_toml_str(&format!("[events]\n{bad}\n"), "h.toml").unwrap_err();
+            let key = bad.split(' ').next().unwrap();
+            assert!(err.to_string().contains(&format!("events.{key}")), "{err}");
+        }
     }
 
     #[test]

@@ -247,6 +247,34 @@ fn event_rectifier_table_matches_per_pixel_rectification() {
 }
 
 #[test]
+fn masked_raw_pixels_lose_their_events_until_the_mask_is_replaced() {
+    let rig = rig();
+    let rect = rectified(&rig.event, &rig.event_from_rig);
+    let mut lut = EventRectifier::new(&rect, Side::Left);
+    let (x, y, t, p) = (
+        [640u16, 641, 640],
+        [360u16, 360, 360],
+        [1i64, 2, 3],
+        [1i8, 0, 1],
+    );
+    let events = EventSlice::new(&x, &y, &t, &p).unwrap();
+    let all = lut.apply(&events, 0, 10).unwrap();
+    assert_eq!(all.t_ns, [1, 2, 3]);
+    lut.set_masked(&[360 * 1280 + 640]).unwrap();
+    assert_eq!(lut.masked_count(), 1);
+    assert_eq!(lut.lookup(640, 360), None);
+    assert_eq!(lut.apply(&events, 0, 10).unwrap().t_ns, [2]);
+    // A new mask replaces the old one; the empty mask restores the table exactly.
+    lut.set_masked(&[360 * 1280 + 641]).unwrap();
+    assert_eq!(lut.apply(&events, 0, 10).unwrap().t_ns, [1, 3]);
+    assert!(lut.set_masked(&[1280 * 720]).is_err());
+    assert_eq!(lut.apply(&events, 0, 10).unwrap().t_ns, [1, 3]);
+    lut.set_masked(&[]).unwrap();
+    assert_eq!(lut.apply(&events, 0, 10).unwrap(), all);
+    assert_eq!(lut.masked_count(), 0);
+}
+
+#[test]
 fn event_rectifier_apply_is_the_per_event_lookup_for_any_thread_count() {
     let rig = rig();
     let rect = rectified(&rig.event, &rig.event_from_rig);

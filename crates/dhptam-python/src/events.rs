@@ -284,3 +284,59 @@ pub fn _e3ct_apply_scales<'py>(
         .into_pyarray(py);
     Ok(out)
 }
+
+/// The running hot-pixel detector of one event camera (see `dhptam_core::events::hot`).
+#[pyclass(name = "HotPixels", module = "dhptam._core")]
+pub struct PyHotPixels {
+    inner: events::HotPixels,
+}
+
+#[pymethods]
+impl PyHotPixels {
+    /// A detector for a `width × height` sensor (raw pixels).
+    #[new]
+    #[pyo3(signature = (width, height, *, ratio = 4.0, min_rate_hz = 20.0, time_constant_s = 1.0))]
+    fn new(
+        width: u32,
+        height: u32,
+        ratio: f64,
+        min_rate_hz: f64,
+        time_constant_s: f64,
+    ) -> PyResult<Self> {
+        let params = events::HotPixelParams {
+            ratio,
+            min_rate_hz,
+            time_constant_s,
+        };
+        Ok(Self {
+            inner: events::HotPixels::new(width, height, params).py()?,
+        })
+    }
+
+    /// Adds a window of `duration_s` seconds with events at raw pixels `(x, y)` (uint16,
+    /// C-contiguous, read in place with the GIL released); returns whether the set of hot
+    /// pixels changed.
+    fn update(
+        &mut self,
+        py: Python<'_>,
+        x: PyReadonlyArray1<'_, u16>,
+        y: PyReadonlyArray1<'_, u16>,
+        duration_s: f64,
+    ) -> PyResult<bool> {
+        let (xs, ys) = (exact(&x, "x")?, exact(&y, "y")?);
+        let inner = &mut self.inner;
+        py.detach_guarded("events::HotPixels.update", || {
+            inner.update(xs, ys, duration_s)
+        })?
+        .py()
+    }
+
+    /// The hot pixels after the last update, raw indices `v · width + u` (uint32, ascending).
+    fn pixels<'py>(&self, py: Python<'py>) -> Bound<'py, numpy::PyArray1<u32>> {
+        self.inner.pixels().to_vec().into_pyarray(py)
+    }
+
+    fn __len__(&self) -> usize {
+        self.inner.pixels().len()
+    }
+}

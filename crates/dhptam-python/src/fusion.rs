@@ -283,7 +283,7 @@ type RectifiedArrays<'py> = (
 
 /// Raw event pixel → rectified pixel lookup table of one camera of a rectified event-camera
 /// pair, built once (see `dhptam_core::fusion::EventRectifier`).
-#[pyclass(name = "EventRectifier", module = "dhptam._core", frozen)]
+#[pyclass(name = "EventRectifier", module = "dhptam._core")]
 pub struct PyEventRectifier {
     inner: EventRectifier,
 }
@@ -296,6 +296,19 @@ impl PyEventRectifier {
         let side = parse_side(side)?;
         let inner = py.detach_guarded("fusion::new", || EventRectifier::new(&rect.inner, side))?;
         Ok(Self { inner })
+    }
+
+    /// Drops the events of raw pixels `pixels` (uint32 indices `v · width + u`, e.g.
+    /// `HotPixels.pixels()`) from now on, replacing the previous mask; `[]` restores the table.
+    fn set_masked(&mut self, pixels: PyReadonlyArray1<'_, u32>) -> PyResult<()> {
+        let pixels = crate::events::exact(&pixels, "pixels")?;
+        self.inner.set_masked(pixels).py()
+    }
+
+    /// How many raw pixels inside the rectified view the mask drops.
+    #[getter]
+    fn masked_count(&self) -> usize {
+        self.inner.masked_count()
     }
 
     /// Raw (event camera) image size `(width, height)`.

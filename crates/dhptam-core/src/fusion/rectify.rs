@@ -35,6 +35,8 @@ pub struct EventRectifier {
     /// `v · width + u` → `v' · 2¹⁶ + u'`, or [`OUTSIDE`] (rectified coordinates are `u16`, and
     /// `v' = 2¹⁶ − 1` cannot occur, so the marker is no pixel).
     table: Vec<u32>,
+    /// Raw pixels masked by [`Self::set_masked`] with their table entries before masking.
+    masked: Vec<(u32, u32)>,
 }
 
 /// Events moved to rectified pixels (owned: the pixels changed, the times did not).
@@ -89,7 +91,41 @@ impl EventRectifier {
             rect_width: rect.width,
             rect_height: rect.height,
             table,
+            masked: Vec::new(),
         }
+    }
+
+    /// Drops every event of the raw pixels `pixels` (`v · width + u`, e.g. the hot pixels of
+    /// [`crate::events::HotPixels`]) from now on, as if their rays left the view; the pixels
+    /// of the previous call are restored first, so each call replaces the mask. Indices
+    /// outside the raw image are an error and change nothing.
+    pub fn set_masked(&mut self, pixels: &[u32]) -> Result<()> {
+        let n = self.table.len();
+        if let Some(&bad) = pixels.iter().find(|&&i| i as usize >= n) {
+            return Err(crate::error::Error::invalid(
+                "masked pixel",
+                format!(
+                    "an index below {n} ({}×{} raw pixels)",
+                    self.width, self.height
+                ),
+                bad,
+            ));
+        }
+        for (i, entry) in self.masked.drain(..) {
+            self.table[i as usize] = entry;
+        }
+        for &i in pixels {
+            let entry = std::mem::replace(&mut self.table[i as usize], OUTSIDE);
+            if entry != OUTSIDE {
+                self.masked.push((i, entry));
+            }
+        }
+        Ok(())
+    }
+
+    /// The raw pixels masked by [`Self::set_masked`] (those inside the rectified view).
+    pub fn masked_count(&self) -> usize {
+        self.masked.len()
     }
 
     /// The rectified pixel of raw pixel `(u, v)`, `None` outside the rectified view.

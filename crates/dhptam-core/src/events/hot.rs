@@ -1,0 +1,321 @@
+//! Hot pixels: event-camera pixels that fire on their own, whatever the scene does.
+//!
+//! Real event sensors have a few such pixels (leaky or defective comparators), firing at tens
+//! to thousands of hertz. In an event image each one is a bright dot at a fixed place: a
+//! perfect corner for a feature detector, and a feature that does not move with the camera,
+//! so it pulls every pose towards the previous one. The simulator can add them
+//! (`dhptam simulate --hot-pixels`), and `docs/BENCHMARKS.md` measures what they cost.
+//!
+//! Detection, per camera and causal (each window updates the statistics, then the mask):
+//!
+//! ```text
+//! a_i  ← d · a_i + n_i          n_i: events of raw pixel i in the window, d = exp(−Δt / τ)
+//! W    ← d · W + Δt             the time the activities have seen (→ τ on long runs)
+//! m_i  = max_{j ∈ 8-neighbours(i)} a_j
+//! hot_i ⇔ W ≥ τ/4  and  a_i ≥ r_min · W  and  a_i − k · m_i > 3 √a_i
+//! ```
+//!
+//! `a_i / W` is the pixel's event rate over the last few τ. Nothing is hot before the
+//! detector has seen τ/4 of events (about 0.3 τ of time): a hot pixel fires all the time,
+//! and a short burst of a real pixel (at the start of a motion, say) must not pass for one.
+//! Edges, textures, flicker and illumination floods fire in patches, so a pixel of theirs has
+//! neighbours about as active as itself; a hot pixel is `k` times more active than every
+//! neighbour, by a margin of three standard deviations of its own count (a Poisson count's,
+//! √a), so that a pixel of a faint texture whose few events happen to outnumber its
+//! neighbours' is not taken for one. A pixel stops being hot when the test fails again (its
+//! rate fell, or its neighbourhood caught up). Two hot pixels side by side are not found
+//! (each has an active neighbour); isolated ones are by far the most common.
+
+use rayon::prelude::*;
+
+use crate::error::{Error, Result};
+
+/// Parameters of [`HotPixels`] (the `[events] hot_pixel_*` settings).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct HotPixelParams {
+    /// `k`: how many times more active than its most active neighbour a hot pixel is.
+    pub ratio: f64,
+    /// `r_min`: the least event rate of a hot pixel, Hz.
+    pub min_rate_hz: f64,
+    /// `τ`: time constant of the activities, seconds.
+    pub time_constant_s: f64,
+}
+
+impl Default for HotPixelParams {
+    fn default() -> Self {
+        Self {
+            ratio: 4.0,
+            min_rate_hz: 20.0,
+            time_constant_s: 1.0,
+        }
+    }
+}
+
+impl HotPixelParams {
+    /// Checks the ranges: ratio > 1, min rate > 0, time constant > 0.
+    pub fn validate(&self) -> Result<()> {
+        let ok = self.ratio.is_finite()
+            && self.ratio > 1.0
+            && self.min_rate_hz.is_finite()
+            && self.min_rate_hz > 0.0
+            && self.time_constant_s.is_finite()
+            && self.time_constant_s > 0.0;
+        if ok {
+            Ok(())
+        } else {
+            Err(Error::invalid(
+                "hot pixel parameters",
+                "ratio > 1, min_rate_hz > 0, time_constant_s > 0",
+                format!("{self:?}"),
+            ))
+        }
+    }
+}
+
+/// The running hot-pixel detector of one event camera (raw sensor pixels).
+#[derive(Clone, Debug)]
+pub struct HotPixels {
+    width: usize,
+    height: usize,
+    params: HotPixelParams,
+    /// Exponentially weighted event count of every raw pixel (row-major).
+    activity: Vec<f32>,
+    /// Events of the current window per pixel (all zero between updates).
+    counts: Vec<u32>,
+    /// Total weight of the time seen so far, seconds.
+    seen_s: f64,
+    /// The hot pixels, `v · width + u`, ascending.
+    hot: Vec<u32>,
+}
+
+impl HotPixels {
+    /// A detector for a `width × height` sensor that has seen nothing yet.
+    pub fn new(width: u32, height: u32, params: HotPixelParams) -> Result<Self> {
+        params.validate()?;
+        if width == 0 || height == 0 {
+            return Err(Error::invalid(
+                "event camera size",
+                "a non-empty image",
+                format!("{width}×{height}"),
+            ));
+        }
+        let n = width as usize * height as usize;
+        Ok(Self {
+            width: width as usize,
+            height: height as usize,
+            params,
+            activity: vec![0.0; n],
+            counts: vec![0; n],
+            seen_s: 0.0,
+            hot: Vec::new(),
+        })
+    }
+
+    /// The hot pixels after the last update, as raw pixel indices `v · width + u`, ascending.
+    pub fn pixels(&self) -> &[u32] {
+        &self.hot
+    }
+
+    /// The parameters in use.
+    pub fn params(&self) -> HotPixelParams {
+        self.params
+    }
+
+    /// Adds a window of `duration_s` seconds holding the events at raw pixels `(x, y)`, then
+    /// re-evaluates every pixel. Returns whether the set of hot pixels changed. A pixel
+    /// outside the sensor is an error naming the event, and leaves the detector unchanged.
+    pub fn update(&mut self, x: &[u16], y: &[u16], duration_s: f64) -> Result<bool> {
+        if x.len() != y.len() {
+            return Err(Error::invalid(
+                "event window",
+                "x and y of equal length",
+                format!("{} and {}", x.len(), y.len()),
+            ));
+        }
+        if !(duration_s.is_finite() && duration_s >= 0.0) {
+            return Err(Error::invalid(
+                "window duration",
+                "a non-negative number of seconds",
+                duration_s,
+            ));
+        }
+        let (w, h) = (self.width, self.height);
+        if let Some(k) = (0..x.len()).find(|&k| usize::from(x[k]) >= w || usize::from(y[k]) >= h) {
+            return Err(Error::invalid(
+                format!("event {k}"),
+                format!("a pixel inside the {w}×{h} sensor"),
+                format!("({}, {})", x[k], y[k]),
+            ));
+        }
+        // Counts by bands of rows: every band reads all events and keeps its own rows, so the
+        // bands write disjoint memory and the result does not depend on the thread count.
+        let rows_per_band = h.div_ceil(rayon::current_num_threads().max(1)).max(1);
+        self.counts
+            .par_chunks_mut(rows_per_band * w)
+            .enumerate()
+            .for_each(|(band, counts)| {
+                let first = band * rows_per_band;
+                let last = first + counts.len() / w;
+                for (&u, &v) in x.iter().zip(y) {
+                    let v = usize::from(v);
+                    if (first..last).contains(&v) {
+                        counts[(v - first) * w + usize::from(u)] += 1;
+                    }
+                }
+            });
+        let decay = (-duration_s / self.params.time_constant_s).exp() as f32;
+        self.activity
+            .par_chunks_mut(w)
+            .zip(self.counts.par_chunks_mut(w))
+            .for_each(|(activity, counts)| {
+                for (a, c) in activity.iter_mut().zip(counts.iter_mut()) {
+                    *a = *a * decay + *c as f32;
+                    *c = 0;
+                }
+            });
+        self.seen_s = self.seen_s * f64::from(decay) + duration_s;
+        let floor = if self.seen_s >= 0.25 * self.params.time_constant_s {
+            (self.params.min_rate_hz * self.seen_s) as f32
+        } else {
+            f32::INFINITY
+        };
+        let ratio = self.params.ratio as f32;
+        let activity = &self.activity;
+        let hot: Vec<u32> = (0..h)
+            .into_par_iter()
+            .flat_map_iter(|v| {
+                let row = &activity[v * w..(v + 1) * w];
+                (0..w).filter_map(move |u| {
+                    let a = row[u];
+                    if a < floor || a <= 0.0 {
+                        return None;
+                    }
+                    let mut most = 0.0f32;
+                    for nv in v.saturating_sub(1)..(v + 2).min(h) {
+                        for nu in u.saturating_sub(1)..(u + 2).min(w) {
+                            if (nu, nv) != (u, v) {
+                                most = most.max(activity[nv * w + nu]);
+                            }
+                        }
+                    }
+                    (a - ratio * most > 3.0 * a.sqrt()).then_some((v * w + u) as u32)
+                })
+            })
+            .collect();
+        let changed = hot != self.hot;
+        self.hot = hot;
+        Ok(changed)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn detector(w: u32, h: u32) -> HotPixels {
+        HotPixels::new(w, h, HotPixelParams::default()).unwrap()
+    }
+
+    /// Events of one 50 ms window: `per_pixel` events at each of `pixels`.
+    fn window(pixels: &[(u16, u16)], per_pixel: usize) -> (Vec<u16>, Vec<u16>) {
+        let mut x = Vec::new();
+        let mut y = Vec::new();
+        for _ in 0..per_pixel {
+            for &(u, v) in pixels {
+                x.push(u);
+                y.push(v);
+            }
+        }
+        (x, y)
+    }
+
+    #[test]
+    fn an_isolated_busy_pixel_is_hot_and_a_moving_edge_is_not() {
+        let mut hot = detector(40, 30);
+        for k in 0..20u16 {
+            // A vertical edge sweeping one column per window (40 events per pixel, far above
+            // the rate floor), and a pixel firing at 200 Hz.
+            let edge: Vec<(u16, u16)> = (5..25).map(|v| (5 + k, v)).collect();
+            let (mut x, mut y) = window(&edge, 40);
+            let (hx, hy) = window(&[(30, 3)], 10);
+            x.extend(hx);
+            y.extend(hy);
+            hot.update(&x, &y, 0.05).unwrap();
+        }
+        assert_eq!(hot.pixels(), &[3 * 40 + 30]);
+    }
+
+    #[test]
+    fn a_pixel_below_the_least_rate_or_beside_an_equal_neighbour_is_not_hot() {
+        let mut hot = detector(20, 20);
+        for k in 0..40 {
+            // Two neighbours firing at 400 Hz together, and a pixel alone at 10 Hz (one event
+            // every other window: under the 20 Hz floor).
+            let (mut x, mut y) = window(&[(10, 10), (11, 10)], 20);
+            if k % 2 == 0 {
+                x.push(2);
+                y.push(2);
+            }
+            hot.update(&x, &y, 0.05).unwrap();
+        }
+        assert!(hot.pixels().is_empty(), "{:?}", hot.pixels());
+    }
+
+    #[test]
+    fn a_pixel_that_stops_firing_stops_being_hot() {
+        let mut hot = detector(16, 16);
+        let (x, y) = window(&[(4, 4)], 10);
+        for _ in 0..10 {
+            hot.update(&x, &y, 0.05).unwrap();
+        }
+        assert_eq!(hot.pixels(), &[4 * 16 + 4]);
+        let mut changed = false;
+        for _ in 0..100 {
+            changed |= hot.update(&[], &[], 0.05).unwrap();
+        }
+        assert!(changed);
+        assert!(hot.pixels().is_empty());
+    }
+
+    #[test]
+    fn the_result_does_not_depend_on_the_thread_count() {
+        let pixels: Vec<(u16, u16)> = (0..300u16)
+            .map(|k| ((k * 37) % 64, (k * 11) % 48))
+            .collect();
+        let (x, y) = window(&pixels, 3);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut hot = detector(64, 48);
+                for _ in 0..5 {
+                    hot.update(&x, &y, 0.05).unwrap();
+                }
+                (hot.activity.clone(), hot.pixels().to_vec())
+            })
+        };
+        assert_eq!(run(1), run(3));
+    }
+
+    #[test]
+    fn bad_input_is_an_error_and_changes_nothing() {
+        let mut hot = detector(8, 8);
+        let err = hot.update(&[1, 9], &[1, 1], 0.05).unwrap_err().to_string();
+        assert!(err.contains("event 1") && err.contains("8×8"), "{err}");
+        assert!(hot.update(&[1], &[1, 2], 0.05).is_err());
+        assert!(hot.update(&[1], &[1], f64::NAN).is_err());
+        assert!(hot.activity.iter().all(|&a| a == 0.0) && hot.seen_s == 0.0);
+        assert!(HotPixels::new(
+            8,
+            8,
+            HotPixelParams {
+                ratio: 1.0,
+                ..Default::default()
+            }
+        )
+        .is_err());
+        assert!(HotPixels::new(0, 8, HotPixelParams::default()).is_err());
+    }
+}
