@@ -364,3 +364,43 @@ def test_event_disparity_gives_the_frame_disparity_of_warped_event_pairs(sequenc
     assert Frontend(sequence, "frames").event_disparity(depth_m) == (1.0, 0.0)
     off = _core.Config.from_toml("[fusion]\nevent_disparity = false")
     assert Frontend(sequence, "events", off).event_disparity(depth_m) == (1.0, 0.0)
+
+
+def test_hot_pixels_are_found_and_their_events_dropped(tmp_path: Path, sequence) -> None:  # type: ignore[no-untyped-def]
+    from dhptam.sim import HotPixelSource, simulate
+
+    # The clean HDR sequence (floods, dark and bright segments) has no hot pixel at any time.
+    with Frontend(sequence, "events", prefetch=0) as fe:
+        stats = [fe.prepare(k).stats for k in range(len(fe))]
+    assert all(s is not None and s.hot_left == s.hot_right == 0 for s in stats)
+
+    out = simulate(tmp_path, preset="tiny", seed=0, hot_pixels=0.01)
+    width = 128
+    with load_tumvie(out.path) as seq, Frontend(seq, "events", prefetch=0) as fe:
+        plain = _core.EventRectifier(fe.event_rect, "left")
+        masked = []
+        for k in range(len(fe)):
+            t0, t1 = fe.window_ns(k)
+            window, _ = fe._rectified_events("left", t0, t1)
+            found = fe._hot["left"].pixels().astype(np.int64)
+            masked.append(len(found))
+            # The window lost exactly the events of the pixels found hot (inside the view).
+            raw = seq.events["left"].window(t0, t1)
+            kept = plain.apply(raw.x, raw.y, raw.t_ns, raw.p, t0, t1)[0]
+            raw_pixels = np.stack([raw.x, raw.y], axis=1).astype(np.int64)
+            in_view = np.isfinite(plain.lookup(raw_pixels)[:, 0])
+            at_hot = np.isin(raw_pixels[:, 1] * width + raw_pixels[:, 0], found)
+            assert len(window) == len(kept) - np.count_nonzero(at_hot & in_view)
+        source = HotPixelSource(width, 72, 0.01, 0, "left")
+        index = source.y.astype(np.int64) * width + source.x.astype(np.int64)
+        truth = set(index.tolist())
+        # The tiny sensor sees the whole textured room: its pixels fire ~400 Hz on average,
+        # so a hot pixel stands out from its neighbours from about 500 Hz.
+        fast = set(index[1e9 / source.period_ns >= 500.0].tolist())
+        found_set = set(found.tolist())
+        assert masked[0] == 0  # no decision before a quarter of the time constant
+        assert max(masked) > 0 and found_set <= truth  # nothing but hot pixels
+        assert len(found_set & fast) >= 0.8 * len(fast) > 10  # and most of the busy ones
+    off = _core.Config.from_toml("[events]\nhot_pixel_ratio = 0.0\n", "test")
+    with load_tumvie(out.path) as seq, Frontend(seq, "events", off, prefetch=0) as fe:
+        assert all(fe.prepare(k).stats.hot_left == 0 for k in range(len(fe)))

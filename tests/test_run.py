@@ -70,6 +70,8 @@ def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: P
     assert all(r.split(",")[column] == "none" for r in rows)
     column = csv_header.split(",").index("flood")
     assert all(r.split(",")[column] == "0" for r in rows)
+    column = csv_header.split(",").index("hot_pixels")  # a clean sequence has none
+    assert all(r.split(",")[column] == "0" for r in rows)
 
 
 def test_the_features_section_of_the_configuration_reaches_the_extractor(

@@ -81,7 +81,8 @@ class RectifiedCalibration(NamedTuple):
 @dataclass(frozen=True)
 class E3ctStats:
     """Event statistics of one frame's window (``on_left``/``on_right``: ON events among
-    ``events_left``/``events_right``)."""
+    ``events_left``/``events_right``; ``hot_left``/``hot_right``: raw pixels whose events were
+    dropped as hot pixels, see ``[events] hot_pixel_ratio``)."""
 
     window_start_ns: int
     window_end_ns: int
@@ -92,6 +93,8 @@ class E3ctStats:
     scales: tuple[float, ...]
     on_left: int = 0
     on_right: int = 0
+    hot_left: int = 0
+    hot_right: int = 0
 
 
 def is_flood(
@@ -304,6 +307,7 @@ class Frontend:
             raise InputError(
                 f"fusion times must increase; frame {k} is not after frame {k - 1}", field="frames"
             )
+        self._hot: dict[str, _core.HotPixels] = {}
         if mode != "frames":
             self.event_rect = RectifiedStereo(
                 StereoRig(
@@ -313,6 +317,20 @@ class Frontend:
             )
             self._rectifiers = {
                 side: _core.EventRectifier(self.event_rect, side) for side in ("left", "right")
+            }
+            # Hot pixels (firing on their own) found as the windows come and masked in the
+            # rectification tables, so that their events reach no representation.
+            ev = self._events_cfg
+            self._hot = {
+                side: _core.HotPixels(
+                    cams[f"event_{side}"].width,
+                    cams[f"event_{side}"].height,
+                    ratio=ev["hot_pixel_ratio"],
+                    min_rate_hz=ev["hot_pixel_min_rate_hz"],
+                    time_constant_s=ev["hot_pixel_time_s"],
+                )
+                for side in ("left", "right")
+                if ev["hot_pixel_ratio"] > 0.0
             }
             # Rectified frame camera ← rectified event camera, per side:
             # rect_f ← f (rectifying rotation) ← e (rig extrinsics) ← rect_e (inverse rotation).
@@ -448,9 +466,13 @@ class Frontend:
         self, side: str, t0: int, t1: int, raw: EventWindow | None = None
     ) -> tuple[EventWindow, int, int]:
         """The rectified window, its raw event count and its raw ON-event count (``raw``: the
-        window already read, else it is read here)."""
+        window already read, else it is read here). The window first updates the camera's
+        hot-pixel detector, and the events of its hot pixels are dropped."""
         if raw is None:
             raw = self.sequence.events[side].window(t0, t1)
+        hot = self._hot.get(side)
+        if hot is not None and hot.update(raw.x, raw.y, (t1 - t0) * 1e-9):
+            self._rectifiers[side].set_masked(hot.pixels())
         x, y, t, p = self._rectifiers[side].apply(raw.x, raw.y, raw.t_ns, raw.p, t0, t1)
         return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw), int(np.count_nonzero(raw.p))
 
@@ -526,6 +548,8 @@ class Frontend:
             scales=tuple(float(s) for s in scales),
             on_left=on_counts["left"],
             on_right=on_counts["right"],
+            hot_left=self._rectifiers["left"].masked_count,
+            hot_right=self._rectifiers["right"].masked_count,
         )
         return tensors, stats
 

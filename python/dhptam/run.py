@@ -14,10 +14,10 @@ others:
 
 Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
 seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inliers, β, fusion
-bias, flood flag, bridge, depth ``warp_depth_m`` of the event→frame warp plane, stage times),
-``timing.json`` (per stage statistics), ``config.toml`` (resolved) and ``run.log``. Each file
-is written to a temporary name and renamed, so a reader never sees half a file; Ctrl-C or a
-failure mid-run still writes everything done so far.
+bias, flood flag, ``hot_pixels`` masked, bridge, depth ``warp_depth_m`` of the event→frame warp
+plane, stage times), ``timing.json`` (per stage statistics), ``config.toml`` (resolved) and
+``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
+a file; Ctrl-C or a failure mid-run still writes everything done so far.
 
 With ``viz="rerun"`` each tracked frame is also handed to a :class:`dhptam.viz.RerunSink`,
 which streams ``recording.rrd`` as the run goes (the no-op :class:`dhptam.viz.VizSink`
@@ -773,6 +773,7 @@ def _track_frames(
                 "beta_left": f"{frame.beta_left:.4f}",
                 "bias": frame.bias,
                 "flood": int(frame.flood),
+                "hot_pixels": 0 if (st := frame.e3ct_stats) is None else st.hot_left + st.hot_right,
                 "warp_depth_m": f"{frame.warp_depth_m:.4f}",
                 "bridge": bridged,
                 "reading_s": round(t_read, 6),
