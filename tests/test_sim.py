@@ -320,3 +320,40 @@ def test_a_shared_sensor_rig_reads_frames_and_events_from_the_same_pixels(tmp_pa
         summary.path, tmp_path / "out", mode="fusion", features="orb", progress=False, threaded=False
     )
     assert result.frames == 6 and (tmp_path / "out" / "trajectory.tum").is_file()
+
+
+def test_hot_pixels_add_their_periodic_events_and_leave_the_scene_events_alone(tmp_path: Path) -> None:
+    from dhptam.sim import HotPixelSource
+
+    clean = simulate(tmp_path, preset="tiny", duration_s=0.3, seed=4, name="clean")
+    hot = simulate(tmp_path, preset="tiny", duration_s=0.3, seed=4, name="hot", hot_pixels=0.01)
+    width, height = RIGS["tiny"].event_size
+    with load_tumvie(clean.path) as a, load_tumvie(hot.path) as b:
+        for side in ("left", "right"):
+            source = HotPixelSource(width, height, 0.01, 4, side)
+            assert len(source) == round(0.01 * width * height)
+            t0, t1 = 0, clean.duration_ns
+            ea, eb = a.events[side].window(t0, t1 + 1), b.events[side].window(t0, t1 + 1)
+            hx, hy, ht, _ = source.events(t0, t1)
+            assert len(eb) == len(ea) + len(ht) and len(ht) > 0
+            # The stream is the clean one plus the hot pixels' events (as multisets of
+            # (µs, x, y)), sorted by time.
+            assert np.all(np.diff(eb.t_ns) >= 0)
+            expected = np.concatenate(
+                [np.stack([ea.t_ns // 1000, ea.x, ea.y], axis=1), np.stack([ht // 1000, hx, hy], axis=1)]
+            ).astype(np.int64)
+            got = np.stack([eb.t_ns // 1000, eb.x, eb.y], axis=1).astype(np.int64)
+            assert np.array_equal(expected[np.lexsort(expected.T[::-1])], got[np.lexsort(got.T[::-1])])
+            # Each hot pixel fires at its own rate, 20 Hz to 2 kHz.
+            rates = 1e9 / source.period_ns
+            assert rates.min() >= 20.0 - 1e-6 and rates.max() <= 2000.0 + 1e-6
+            busiest = int(np.argmax(rates))
+            fired = np.count_nonzero((hx == source.x[busiest]) & (hy == source.y[busiest]))
+            assert abs(fired - rates[busiest] * 0.3) <= 1
+    # Split spans give the events of the whole span, once each.
+    source = HotPixelSource(width, height, 0.01, 4, "left")
+    whole = source.events(0, 300_000_000)[2]
+    parts = np.concatenate([source.events(k * 50_000_000, (k + 1) * 50_000_000)[2] for k in range(6)])
+    assert np.array_equal(np.sort(whole), np.sort(parts))
+    with pytest.raises(InputError, match="hot_pixels"):
+        simulate(tmp_path, preset="tiny", duration_s=0.1, name="bad", hot_pixels=0.5)

@@ -47,6 +47,7 @@ def _simulate_command(args: argparse.Namespace) -> int:
         progress=not args.quiet,
         blackout=_span(args.blackout, "blackout"),
         shake=_span(args.shake, "shake"),
+        hot_pixels=args.hot_pixels,
     )
     sys.stdout.write(
         f"{summary.path}: {summary.frames} frame pairs, {summary.events_left} + {summary.events_right} "
@@ -100,6 +101,13 @@ def _add_simulate_command(sub: argparse._SubParsersAction) -> None:  # type: ign
     )
     simulate.add_argument(
         "--shake", metavar="START:DURATION", help="add a violent hand shake over this span in seconds"
+    )
+    simulate.add_argument(
+        "--hot-pixels",
+        type=float,
+        default=0.0,
+        metavar="FRACTION",
+        help="fraction of each event camera's pixels that fire on their own, 20 Hz-2 kHz (default 0)",
     )
     simulate.set_defaults(func=_simulate_command)
 

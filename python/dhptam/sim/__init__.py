@@ -3,7 +3,8 @@
 A textured room with a desk (photographs from scikit-image and procedural textures) is ray
 cast per pixel in Rust for four cameras — stereo frame cameras and stereo event cameras, a
 TUM-VIE-like rig — moving along a built-in or recorded trajectory. Frames get exposure, motion
-blur, a lagging auto-exposure, noise and saturation; events follow the ESIM model. The output
+blur, a lagging auto-exposure, noise and saturation; events follow the ESIM model (optionally
+with hot pixels, :class:`HotPixelSource`). The output
 is the TUM-VIE layout, written through :class:`dhptam.datasets.TumVieWriter`, plus the left
 frame camera's ground truth as a TUM trajectory.
 
@@ -21,7 +22,7 @@ Example::
 from __future__ import annotations
 
 from .presets import DEFAULT_PRESET, IMU_FROM_MARKER, MOTIONS, PRESETS, PROFILES, RIGS, Preset, RigSpec
-from .simulate import GROUND_TRUTH_FILE, SimulationSummary, simulate, simulator_for
+from .simulate import GROUND_TRUTH_FILE, HotPixelSource, SimulationSummary, simulate, simulator_for
 from .textures import PHOTO_NAMES, load_photos
 
 __all__ = [
@@ -33,6 +34,7 @@ __all__ = [
     "PRESETS",
     "PROFILES",
     "RIGS",
+    "HotPixelSource",
     "Preset",
     "RigSpec",
     "SimulationSummary",

@@ -6,6 +6,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -125,6 +126,7 @@ def simulate(
     progress: bool = False,
     blackout: tuple[float, float] | None = None,
     shake: tuple[float, float] | None = None,
+    hot_pixels: float = 0.0,
 ) -> SimulationSummary:
     """Simulate a sequence and write it to ``out_dir / name`` in the TUM-VIE layout.
 
@@ -162,6 +164,9 @@ def simulate(
         (see :func:`shake_offsets`): rotation up to about 0.33 rad about all axes at
         6-9 Hz (rates up to about 20 rad/s) and a few centimetres of translation, faded in and
         out over 0.1 s.
+    hot_pixels
+        Fraction of each event camera's pixels that are hot (:class:`HotPixelSource`), like a
+        real sensor's defective pixels; 0 (default) adds none.
 
     Returns
     -------
@@ -199,6 +204,12 @@ def simulate(
         seed,
     )
     calibration = RigCalibration(cameras=cameras, imu_from_cam=imu_from_cam)
+    hot = {
+        side: HotPixelSource(
+            cameras[f"event_{side}"].width, cameras[f"event_{side}"].height, hot_pixels, seed, side
+        )
+        for side in ("left", "right")
+    }
     counts = {"left": 0, "right": 0}
     bar = _progress(n_frames, progress)
     with TumVieWriter(out_dir, name or preset, calibration, IMU_FROM_MARKER, overwrite=overwrite) as writer:
@@ -209,7 +220,9 @@ def simulate(
                 left, right = np.zeros_like(left), np.zeros_like(right)
             writer.add_frame_pair(t_ns, exposure_ns, left, right)
             t_end = duration_ns if k == n_frames - 1 else (k + 1) * frame_step_ns
+            t_start = k * frame_step_ns
             for side, (x, y, t, p) in zip(("left", "right"), sim.events_until(t_end), strict=True):
+                x, y, t, p = hot[side].merged(x, y, t, p, t_start, t_end)
                 if covered is not None:
                     seen = (t < covered[0]) | (t >= covered[1])
                     x, y, t, p = x[seen], y[seen], t[seen], p[seen]
@@ -235,6 +248,73 @@ def simulate(
     )
     log.info("wrote %s in %.1f s (%d renders)", path, summary.seconds, summary.renders)
     return summary
+
+
+class HotPixelSource:
+    """The hot pixels of one simulated event camera: pixels that fire on their own.
+
+    ``round(fraction · width · height)`` pixels, drawn from ``seed`` (and the side), each firing
+    one polarity periodically at its own rate, log-uniform between :attr:`RATES_HZ`, with a
+    random phase, whatever the scene does. :meth:`merged` adds their events of a span to the
+    simulator's events of the same span.
+    """
+
+    #: Range of the hot pixels' rates, Hz.
+    RATES_HZ = (20.0, 2000.0)
+
+    def __init__(self, width: int, height: int, fraction: float, seed: int, side: str) -> None:
+        if not 0.0 <= float(fraction) <= 0.1:
+            raise InputError(
+                f"hot_pixels must be a fraction of the pixels in [0, 0.1], got {fraction!r}",
+                field="hot_pixels",
+            )
+        rng = np.random.default_rng([int(seed), 0x407, 0 if side == "left" else 1])
+        n = round(float(fraction) * width * height)
+        index = rng.choice(width * height, size=n, replace=False)
+        self.x = (index % width).astype(np.uint16)
+        self.y = (index // width).astype(np.uint16)
+        low, high = np.log(self.RATES_HZ[0]), np.log(self.RATES_HZ[1])
+        self.period_ns = np.round(_NS / np.exp(rng.uniform(low, high, size=n))).astype(np.int64)
+        self.phase_ns = (rng.uniform(0.0, 1.0, size=n) * self.period_ns).astype(np.int64)
+        self.p = rng.integers(0, 2, size=n).astype(np.int8)
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+    def events(self, t0_ns: int, t1_ns: int) -> tuple[npt.NDArray[Any], ...]:
+        """The hot pixels' events in ``(t0_ns, t1_ns]``, sorted by time."""
+        first = -((self.phase_ns - t0_ns) // self.period_ns)  # least m with phase + m·period > t0
+        first = np.where(self.phase_ns + first * self.period_ns > t0_ns, first, first + 1)
+        last = (t1_ns - self.phase_ns) // self.period_ns  # greatest m with phase + m·period <= t1
+        count = np.maximum(last - first + 1, 0)
+        pixel = np.repeat(np.arange(len(self)), count)
+        step = np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)
+        t = self.phase_ns[pixel] + (first[pixel] + step) * self.period_ns[pixel]
+        order = np.argsort(t, kind="stable")
+        return self.x[pixel][order], self.y[pixel][order], t[order], self.p[pixel][order]
+
+    def merged(
+        self,
+        x: npt.NDArray[Any],
+        y: npt.NDArray[Any],
+        t: npt.NDArray[Any],
+        p: npt.NDArray[Any],
+        t0_ns: int,
+        t1_ns: int,
+    ) -> tuple[npt.NDArray[Any], ...]:
+        """The events ``(x, y, t, p)`` of ``(t0_ns, t1_ns]`` with the hot pixels' added, sorted
+        by time (the given events first among equal times); unchanged without hot pixels."""
+        if len(self) == 0:
+            return x, y, t, p
+        hx, hy, ht, hp = self.events(t0_ns, t1_ns)
+        t_all = np.concatenate([np.asarray(t, np.int64), ht])
+        order = np.argsort(t_all, kind="stable")
+        return (
+            np.concatenate([np.asarray(x, np.uint16), hx])[order],
+            np.concatenate([np.asarray(y, np.uint16), hy])[order],
+            t_all[order],
+            np.concatenate([np.asarray(p, np.int8), hp])[order],
+        )
 
 
 def _span_ns(span: tuple[float, float], field: str) -> tuple[int, int]:
