@@ -259,3 +259,24 @@ def test_events_and_fusion_config_sections():
     w = EventWindow(x=x, y=y, t_ns=t, p=p)
     left, _, scales = stereo_e3ct(w, w, width=32, height=24, t_start_ns=0, t_end_ns=20 * MS, config=cfg)
     assert left.shape == (24, 32, 8) and scales.shape == (8,)
+
+
+def test_the_hot_pixel_detector_takes_any_integer_arrays_and_names_bad_events() -> None:
+    from dhptam.events import HotPixels
+
+    detector = HotPixels(16, 12, ratio=3.0, min_rate_hz=50.0, time_constant_s=0.5)
+    # Plain int64 lists are converted once; an edge sweeping the image is never hot, a pixel
+    # firing 600 times a second alone is, once a quarter of the time constant has passed.
+    changed = []
+    for k in range(10):
+        edge_x, edge_y = [k] * 12 * 5, list(range(12)) * 5
+        changed.append(detector.update(np.array(edge_x + [14] * 30), np.array(edge_y + [2] * 30), 0.05))
+    assert changed.index(True) == 2 and detector.pixels().tolist() == [2 * 16 + 14] and len(detector) == 1
+    with pytest.raises(InputError, match="event 1") as err:
+        detector.update([1, 16], [1, 1], 0.05)
+    assert "16×12" in str(err.value)
+    with pytest.raises(InputError, match="x must fit uint16"):
+        detector.update([-1], [1], 0.05)
+    assert detector.pixels().tolist() == [2 * 16 + 14]
+    with pytest.raises(InputError, match="ratio > 1"):
+        HotPixels(16, 12, ratio=0.5)

@@ -349,7 +349,59 @@ def postprocess(
     return out
 
 
+class HotPixels:
+    """The running hot-pixel detector of one event camera (raw sensor pixels).
+
+    A hot pixel fires on its own, whatever the scene does: a bright dot at a fixed place in
+    every event image. Each :meth:`update` adds one window's events; a pixel is hot while it
+    fires at least ``min_rate_hz`` and ``ratio`` times more than each of its 8 neighbours
+    (rates over the last few ``time_constant_s``); nothing is decided before a quarter of
+    ``time_constant_s``. The rule and its reasons: ``docs/E3CT.md``, "Hot pixels".
+    :class:`dhptam.frontend.Frontend` keeps one per camera (``[events] hot_pixel_*``) and
+    drops their events before the E3CT.
+
+    Example: a pixel firing 400 times a second alone in the dark::
+
+        >>> import numpy as np
+        >>> from dhptam.events import HotPixels
+        >>> detector = HotPixels(width=8, height=6)
+        >>> [detector.update(x=[3] * 20, y=[4] * 20, duration_s=0.05) for _ in range(6)]
+        [False, False, False, False, False, True]
+        >>> detector.pixels().tolist(), 4 * 8 + 3
+        ([35], 35)
+    """
+
+    def __init__(
+        self,
+        width: int,
+        height: int,
+        *,
+        ratio: float = 4.0,
+        min_rate_hz: float = 20.0,
+        time_constant_s: float = 1.0,
+    ) -> None:
+        self._inner = _core.HotPixels(
+            int(width), int(height), ratio=ratio, min_rate_hz=min_rate_hz, time_constant_s=time_constant_s
+        )
+
+    def update(self, x: npt.ArrayLike, y: npt.ArrayLike, duration_s: float) -> bool:
+        """Adds a window of ``duration_s`` seconds with events at raw pixels ``(x, y)``;
+        returns whether the set of hot pixels changed. A pixel outside the sensor raises
+        :class:`dhptam.errors.InputError` naming the event, and changes nothing."""
+        return bool(
+            self._inner.update(_typed(x, np.uint16, "x"), _typed(y, np.uint16, "y"), float(duration_s))
+        )
+
+    def pixels(self) -> npt.NDArray[np.uint32]:
+        """The hot pixels, raw indices ``y * width + x`` (uint32, ascending)."""
+        return self._inner.pixels()
+
+    def __len__(self) -> int:
+        return len(self._inner)
+
+
 __all__ = [
+    "HotPixels",
     "count_image",
     "e3ct",
     "fusion_times_ns",
