@@ -376,7 +376,7 @@ class HotPixels:
         height: int,
         *,
         ratio: float = 4.0,
-        min_rate_hz: float = 20.0,
+        min_rate_hz: float = 50.0,
         time_constant_s: float = 1.0,
     ) -> HotPixels: ...
     def update(self, x: _U16, y: _U16, duration_s: float) -> bool: ...

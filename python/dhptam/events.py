@@ -353,8 +353,10 @@ class HotPixels:
     """The running hot-pixel detector of one event camera (raw sensor pixels).
 
     A hot pixel fires on its own, whatever the scene does: a bright dot at a fixed place in
-    every event image. Each :meth:`update` adds one window's events; a pixel is hot while it
-    fires at least ``min_rate_hz`` and ``ratio`` times more than each of its 8 neighbours
+    every event image. :meth:`update` offers one window; the detector counts one whenever an
+    eighth of ``time_constant_s`` has passed since the last one it counted (hot pixels fire
+    steadily, so sampling loses nothing; the other windows cost nothing). A pixel is hot while
+    it fires at least ``min_rate_hz`` and ``ratio`` times more than each of its 8 neighbours
     (rates over the last few ``time_constant_s``); nothing is decided before a quarter of
     ``time_constant_s``. The rule and its reasons: ``docs/E3CT.md``, "Hot pixels".
     :class:`dhptam.frontend.Frontend` keeps one per camera (``[events] hot_pixel_*``) and
@@ -365,8 +367,8 @@ class HotPixels:
         >>> import numpy as np
         >>> from dhptam.events import HotPixels
         >>> detector = HotPixels(width=8, height=6)
-        >>> [detector.update(x=[3] * 20, y=[4] * 20, duration_s=0.05) for _ in range(6)]
-        [False, False, False, False, False, True]
+        >>> [detector.update(x=[3] * 20, y=[4] * 20, duration_s=0.05) for _ in range(7)]
+        [False, False, False, False, False, False, True]
         >>> detector.pixels().tolist(), 4 * 8 + 3
         ([35], 35)
     """
@@ -377,7 +379,7 @@ class HotPixels:
         height: int,
         *,
         ratio: float = 4.0,
-        min_rate_hz: float = 20.0,
+        min_rate_hz: float = 50.0,
         time_constant_s: float = 1.0,
     ) -> None:
         self._inner = _core.HotPixels(
@@ -385,8 +387,9 @@ class HotPixels:
         )
 
     def update(self, x: npt.ArrayLike, y: npt.ArrayLike, duration_s: float) -> bool:
-        """Adds a window of ``duration_s`` seconds with events at raw pixels ``(x, y)``;
-        returns whether the set of hot pixels changed. A pixel outside the sensor raises
+        """Offers a window of ``duration_s`` seconds with events at raw pixels ``(x, y)``;
+        returns whether the set of hot pixels changed (always ``False`` for a window the
+        detector does not count). A pixel outside the sensor raises
         :class:`dhptam.errors.InputError` naming the event, and changes nothing."""
         return bool(
             self._inner.update(_typed(x, np.uint16, "x"), _typed(y, np.uint16, "y"), float(duration_s))

@@ -202,7 +202,7 @@ config_section! {
         /// 0 turns the detector off, otherwise > 1.
         hot_pixel_ratio: f64 = 4.0,
         /// The least event rate of a hot pixel, Hz.
-        hot_pixel_min_rate_hz: f64 = 20.0,
+        hot_pixel_min_rate_hz: f64 = 50.0,
         /// Time constant of the per-pixel event rates the detector compares, seconds.
         hot_pixel_time_s: f64 = 1.0,
     }

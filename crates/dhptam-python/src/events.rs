@@ -295,7 +295,7 @@ pub struct PyHotPixels {
 impl PyHotPixels {
     /// A detector for a `width × height` sensor (raw pixels).
     #[new]
-    #[pyo3(signature = (width, height, *, ratio = 4.0, min_rate_hz = 20.0, time_constant_s = 1.0))]
+    #[pyo3(signature = (width, height, *, ratio = 4.0, min_rate_hz = 50.0, time_constant_s = 1.0))]
     fn new(
         width: u32,
         height: u32,
@@ -313,9 +313,9 @@ impl PyHotPixels {
         })
     }
 
-    /// Adds a window of `duration_s` seconds with events at raw pixels `(x, y)` (uint16,
+    /// Offers a window of `duration_s` seconds with events at raw pixels `(x, y)` (uint16,
     /// C-contiguous, read in place with the GIL released); returns whether the set of hot
-    /// pixels changed.
+    /// pixels changed (the detector counts one window every τ/8; see the core's docs).
     fn update(
         &mut self,
         py: Python<'_>,
