@@ -266,12 +266,13 @@ def test_the_hot_pixel_detector_takes_any_integer_arrays_and_names_bad_events() 
 
     detector = HotPixels(16, 12, ratio=3.0, min_rate_hz=50.0, time_constant_s=0.5)
     # Plain int64 lists are converted once; an edge sweeping the image is never hot, a pixel
-    # firing 600 times a second alone is, once a quarter of the time constant has passed.
+    # firing 600 times a second alone is, once it has fired in three sampled windows in a row
+    # (one window in two is counted at τ = 0.5 s: windows 0, 2 and 4).
     changed = []
     for k in range(10):
         edge_x, edge_y = [k] * 12 * 5, list(range(12)) * 5
         changed.append(detector.update(np.array(edge_x + [14] * 30), np.array(edge_y + [2] * 30), 0.05))
-    assert changed.index(True) == 2 and detector.pixels().tolist() == [2 * 16 + 14] and len(detector) == 1
+    assert changed.index(True) == 4 and detector.pixels().tolist() == [2 * 16 + 14] and len(detector) == 1
     with pytest.raises(InputError, match="event 1") as err:
         detector.update([1, 16], [1, 1], 0.05)
     assert "16×12" in str(err.value)

@@ -398,7 +398,7 @@ def test_hot_pixels_are_found_and_their_events_dropped(tmp_path: Path, sequence)
         # so a hot pixel stands out from its neighbours from about 500 Hz.
         fast = set(index[1e9 / source.period_ns >= 500.0].tolist())
         found_set = set(found.tolist())
-        assert masked[0] == 0  # no decision before a quarter of the time constant
+        assert masked[0] == 0  # no decision before three counted windows in a row
         assert max(masked) > 0 and found_set <= truth  # nothing but hot pixels
         assert len(found_set & fast) >= 0.8 * len(fast) > 10  # and most of the busy ones
     off = _core.Config.from_toml("[events]\nhot_pixel_ratio = 0.0\n", "test")

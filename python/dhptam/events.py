@@ -357,8 +357,9 @@ class HotPixels:
     eighth of ``time_constant_s`` has passed since the last one it counted (hot pixels fire
     steadily, so sampling loses nothing; the other windows cost nothing). A pixel is hot while
     it fires at least ``min_rate_hz`` and ``ratio`` times more than each of its 8 neighbours
-    (rates over the last few ``time_constant_s``); nothing is decided before a quarter of
-    ``time_constant_s``. The rule and its reasons: ``docs/E3CT.md``, "Hot pixels".
+    (rates over the last few ``time_constant_s``), and has fired in three counted windows in a
+    row (a burst of a real pixel on a passing detail does not). The rule and its reasons:
+    ``docs/E3CT.md``, "Hot pixels".
     :class:`dhptam.frontend.Frontend` keeps one per camera (``[events] hot_pixel_*``) and
     drops their events before the E3CT.
 

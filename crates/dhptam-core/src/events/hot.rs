@@ -16,19 +16,21 @@
 //! a_i  ← d · a_i + n_i          d = exp(−s / τ)
 //! W    ← d · W + Δt             the sampled time the activities have seen
 //! m_i  = max_{j ∈ 8-neighbours(i)} a_j
-//! hot_i ⇔ T ≥ τ/4  and  a_i ≥ r_min · W  and  a_i − k · m_i > 3 √a_i
+//! hot_i ⇔ a_i ≥ r_min · W  and  a_i − k · m_i > 3 √a_i
+//!         and (i fired in each of the last 3 sampled windows, or was hot already)
 //! ```
 //!
-//! `a_i / W` is the pixel's event rate over the last few τ. Nothing is hot before the
-//! detector has been offered `T ≥ τ/4` of windows: a hot pixel fires all the time,
-//! and a short burst of a real pixel (at the start of a motion, say) must not pass for one.
-//! Edges, textures, flicker and illumination floods fire in patches, so a pixel of theirs has
-//! neighbours about as active as itself; a hot pixel is `k` times more active than every
-//! neighbour, by a margin of three standard deviations of its own count (a Poisson count's,
-//! √a), so that a pixel of a faint texture whose few events happen to outnumber its
-//! neighbours' is not taken for one. A pixel stops being hot when the test fails again (its
-//! rate fell, or its neighbourhood caught up). Two hot pixels side by side are not found
-//! (each has an active neighbour); isolated ones are by far the most common.
+//! `a_i / W` is the pixel's event rate over the last few τ. Edges, textures, flicker and
+//! illumination floods fire in patches, so a pixel of theirs has neighbours about as active
+//! as itself; a hot pixel is `k` times more active than every neighbour, by a margin of three
+//! standard deviations of its own count (a Poisson count's, √a), so that a pixel of a faint
+//! texture whose few events happen to outnumber its neighbours' is not taken for one. A hot
+//! pixel also fires all the time, where a pixel on a sharp detail of the scene fires in a
+//! burst of a few windows as the detail passes: the streak of three sampled windows (about
+//! τ/4 of steady firing) keeps such bursts, and the first windows of a run, out. A pixel stops
+//! being hot when the rate tests fail (its rate fell, or its neighbourhood caught up). Two hot
+//! pixels side by side are not found (each has an active neighbour); isolated ones are by far
+//! the most common.
 
 use rayon::prelude::*;
 
@@ -39,6 +41,9 @@ const MAX_COUNT_PARTS: usize = 4;
 
 /// A window is counted when this fraction of τ has passed since the last one counted started.
 const SAMPLE_EVERY: f64 = 0.125;
+
+/// Sampled windows in a row a pixel must fire in before it can become hot.
+const MIN_STREAK: u8 = 3;
 
 /// How far ahead the counting pass prefetches table entries, in events.
 const PREFETCH: usize = 24;
@@ -104,8 +109,8 @@ pub struct HotPixels {
     seen_s: f64,
     /// Time since the last sampled window started, seconds (`None` before the first).
     since_sample_s: Option<f64>,
-    /// Time offered so far, sampled or not, seconds.
-    elapsed_s: f64,
+    /// Sampled windows in a row, up to the last, in which each pixel fired (saturating).
+    streak: Vec<u8>,
     /// The hot pixels, `v · width + u`, ascending.
     hot: Vec<u32>,
 }
@@ -130,7 +135,7 @@ impl HotPixels {
             counts: Vec::new(),
             seen_s: 0.0,
             since_sample_s: None,
-            elapsed_s: 0.0,
+            streak: vec![0; n],
             hot: Vec::new(),
         })
     }
@@ -171,7 +176,6 @@ impl HotPixels {
         let since = match self.since_sample_s {
             Some(since) if since < SAMPLE_EVERY * tau => {
                 self.since_sample_s = Some(since + duration_s);
-                self.elapsed_s += duration_s;
                 return Ok(false);
             }
             since => since.unwrap_or(0.0),
@@ -224,29 +228,22 @@ impl HotPixels {
         let counts = &self.counts;
         self.activity
             .par_chunks_mut(ROWS_PER_TASK * w)
+            .zip(self.streak.par_chunks_mut(ROWS_PER_TASK * w))
             .enumerate()
-            .for_each(|(block, activity)| {
-                let (start, len) = (block * ROWS_PER_TASK * w, activity.len());
-                for a in activity.iter_mut() {
-                    *a *= decay;
-                }
-                for part in counts {
-                    for (a, &c) in activity.iter_mut().zip(&part[start..start + len]) {
-                        *a += f32::from(c);
-                    }
+            .for_each(|(block, (activity, streak))| {
+                let start = block * ROWS_PER_TASK * w;
+                for (i, (a, s)) in activity.iter_mut().zip(streak.iter_mut()).enumerate() {
+                    let total: u32 = counts.iter().map(|part| u32::from(part[start + i])).sum();
+                    *a = *a * decay + total as f32;
+                    *s = if total > 0 { s.saturating_add(1) } else { 0 };
                 }
             });
         self.counts.par_iter_mut().for_each(|c| c.fill(0));
         self.seen_s = self.seen_s * f64::from(decay) + duration_s;
         self.since_sample_s = Some(duration_s);
-        self.elapsed_s += duration_s;
-        let floor = if self.elapsed_s >= 0.25 * tau {
-            (self.params.min_rate_hz * self.seen_s) as f32
-        } else {
-            f32::INFINITY
-        };
+        let floor = (self.params.min_rate_hz * self.seen_s) as f32;
         let ratio = self.params.ratio as f32;
-        let activity = &self.activity;
+        let (activity, streak, previous) = (&self.activity, &self.streak, &self.hot);
         let row = |v: usize| &activity[v * w..(v + 1) * w];
         let hot: Vec<u32> = (0..h)
             .into_par_iter()
@@ -270,8 +267,11 @@ impl HotPixels {
                         most = most.max(side[l]).max(side[u]).max(side[r]);
                     }
                     let excess = a - ratio * most;
-                    if excess > 0.0 && excess > 3.0 * a.sqrt() {
-                        found.push((v * w + u) as u32);
+                    let index = (v * w + u) as u32;
+                    let steady = streak[index as usize] >= MIN_STREAK
+                        || previous.binary_search(&index).is_ok();
+                    if excess > 0.0 && excess > 3.0 * a.sqrt() && steady {
+                        found.push(index);
                     }
                 }
                 found
