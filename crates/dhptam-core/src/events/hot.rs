@@ -225,17 +225,30 @@ impl HotPixels {
             });
         // Decayed by the time since the last sampled window started.
         let decay = (-since / tau).exp() as f32;
-        let counts = &self.counts;
+        // The parts summed into the first (saturating u16 adds), then one pass over the image.
+        let block = ROWS_PER_TASK * w;
+        let (total, rest) = self
+            .counts
+            .split_first_mut()
+            .expect("at least one count part");
+        for part in rest.iter() {
+            total
+                .par_chunks_mut(block)
+                .zip(part.par_chunks(block))
+                .for_each(|(t, p)| {
+                    for (t, &p) in t.iter_mut().zip(p) {
+                        *t = t.saturating_add(p);
+                    }
+                });
+        }
         self.activity
-            .par_chunks_mut(ROWS_PER_TASK * w)
-            .zip(self.streak.par_chunks_mut(ROWS_PER_TASK * w))
-            .enumerate()
-            .for_each(|(block, (activity, streak))| {
-                let start = block * ROWS_PER_TASK * w;
-                for (i, (a, s)) in activity.iter_mut().zip(streak.iter_mut()).enumerate() {
-                    let total: u32 = counts.iter().map(|part| u32::from(part[start + i])).sum();
-                    *a = *a * decay + total as f32;
-                    *s = if total > 0 { s.saturating_add(1) } else { 0 };
+            .par_chunks_mut(block)
+            .zip(self.streak.par_chunks_mut(block))
+            .zip(total.par_chunks(block))
+            .for_each(|((activity, streak), total)| {
+                for ((a, s), &c) in activity.iter_mut().zip(streak.iter_mut()).zip(total) {
+                    *a = *a * decay + f32::from(c);
+                    *s = if c > 0 { s.saturating_add(1) } else { 0 };
                 }
             });
         self.counts.par_iter_mut().for_each(|c| c.fill(0));
