@@ -367,6 +367,7 @@ class EventRectifier:
     @property
     def masked_count(self) -> int: ...
 
+@final
 class HotPixels:
     """Running detector of the hot pixels of one event camera (raw pixels)."""
 
