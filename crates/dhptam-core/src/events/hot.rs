@@ -63,11 +63,13 @@ pub struct HotPixelParams {
 }
 
 impl Default for HotPixelParams {
+    /// The `[events] hot_pixel_*` defaults.
     fn default() -> Self {
+        let events = crate::config::EventsConfig::default();
         Self {
-            ratio: 4.0,
-            min_rate_hz: 50.0,
-            time_constant_s: 1.0,
+            ratio: events.hot_pixel_ratio,
+            min_rate_hz: events.hot_pixel_min_rate_hz,
+            time_constant_s: events.hot_pixel_time_s,
         }
     }
 }
@@ -143,11 +145,6 @@ impl HotPixels {
     /// The hot pixels after the last update, as raw pixel indices `v · width + u`, ascending.
     pub fn pixels(&self) -> &[u32] {
         &self.hot
-    }
-
-    /// The parameters in use.
-    pub fn params(&self) -> HotPixelParams {
-        self.params
     }
 
     /// Offers a window of `duration_s` seconds holding the events at raw pixels `(x, y)`.
