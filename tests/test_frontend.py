@@ -14,6 +14,7 @@ from dhptam import SE3, SO3, _core
 from dhptam.datasets import load_tumvie
 from dhptam.errors import InputError
 from dhptam.frontend import MODES, Frontend, _exposed_like, is_flood
+from dhptam.fusion import choose_beta
 from dhptam.sim import simulator_for
 
 _NS = 1_000_000_000
@@ -209,8 +210,10 @@ def _orb_count(image: np.ndarray) -> int:
 
 def test_hdr_beta_switches_to_dvs_in_dark_and_bright_segments_and_fusion_adds_features(sequence) -> None:  # type: ignore[no-untyped-def]
     """Issue 5: on the ``hdr`` profile β is DVS-biased in the dark and bright segments and
-    APS-biased again afterwards; there the fused image has more ORB features than the frame."""
-    frames = list(Frontend(sequence, "fusion"))
+    APS-biased again afterwards; there the fused image has more ORB features than the frame.
+    The paper's β on the frames as they come: exposure recovery off (see the next test)."""
+    raw_frames = _core.Config.from_toml("[fusion]\nrecover_exposure = false\n")
+    frames = list(Frontend(sequence, "fusion", raw_frames))
     duration_s = 1.0  # the tiny preset
     segments = _core.sim_profile_segments("hdr")
     checked = {"dark": 0, "bright": 0, "after": 0}
@@ -229,6 +232,41 @@ def test_hdr_beta_switches_to_dvs_in_dark_and_bright_segments_and_fusion_adds_fe
             assert f.beta_left <= 0.5
             checked["after"] += 1
     assert checked["dark"] >= 3 and checked["bright"] >= 2 and checked["after"] >= 2, checked
+
+
+@pytest.mark.parametrize("mode", ["fusion", "frames"])
+def test_dark_frames_are_stretched_before_beta_and_features_and_others_are_not(sequence, mode: str) -> None:  # type: ignore[no-untyped-def]
+    """Issue 8: the dark frames of the ``hdr`` profile hold the scene in a few grey levels with
+    little noise; they are stretched to full contrast (``[fusion] recover_exposure``), become
+    APS-biased and give ORB many more features. Saturated frames stay DVS-biased; well-exposed
+    frames are passed on untouched; a strict noise test leaves every frame as it is."""
+    fe = Frontend(sequence, mode, prefetch=0)
+    strict = Frontend(sequence, mode, _core.Config.from_toml("[fusion]\nrecover_min_snr = 1e6\n"), prefetch=0)
+    segments = _core.sim_profile_segments("hdr")
+    duration_s = 1.0  # the tiny preset
+    checked = {"dark": 0, "bright": 0, "normal": 0}
+    for k in range(len(fe)):
+        f = fe.process(k)
+        raw = fe._rectify_frame(sequence.frames[k].left, "left")
+        t = f.t_ns / _NS
+        kind = next((name for name, a, b in segments if a * duration_s <= t < b * duration_s), "normal")
+        if kind == "dark" and f.stretched == (True, True):
+            assert int(f.frame_left.max()) == 255 and int(raw.max()) < 60, (k, int(raw.max()))
+            assert _orb_count(f.frame_left) > 3 * max(_orb_count(raw), 10), k
+            assert f.bias == ("aps" if mode == "fusion" else "frames"), (k, f.bias)
+            if mode == "fusion":
+                assert f.beta_left <= 0.3
+            checked["dark"] += 1
+        elif kind == "bright" and mode == "fusion":
+            assert f.bias == "dvs", k  # stretching does not unclip a saturated frame
+            checked["bright"] += 1
+        if choose_beta(raw).bias == "aps":  # well exposed (the auto-exposure lags the light)
+            assert f.stretched[0] is False and np.array_equal(f.frame_left, raw), k
+            checked["normal"] += 1
+        g = strict.process(k)
+        assert g.stretched == (False, False) and np.array_equal(g.frame_left, raw), k
+    assert checked["dark"] >= 3 and checked["normal"] >= 3, checked
+    assert mode == "frames" or checked["bright"] >= 2, checked
 
 
 def test_auto_plane_depth_is_the_median_scene_depth(sequence) -> None:  # type: ignore[no-untyped-def]

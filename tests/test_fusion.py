@@ -7,7 +7,7 @@ import pytest
 
 from dhptam import SE3, SO3, Config
 from dhptam.errors import ConfigError, InputError
-from dhptam.fusion import choose_beta, fuse, warp_to_frame
+from dhptam.fusion import choose_beta, fuse, recover_exposure, warp_to_frame
 
 
 def frame(base: float, gradient: float) -> np.ndarray:
@@ -45,6 +45,50 @@ def test_the_default_caps_beta_of_well_exposed_frames_only():
         assert capped.bias == plain.bias == "dvs" and capped.beta == plain.beta >= 0.5
     with pytest.raises(ConfigError, match="aps_beta_max"):
         Config.from_toml("[fusion]\naps_beta_max = 1.5\n")
+
+
+def _noisy_ramp(low: float, high: float, sigma: float, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    ramp = np.linspace(low, high, 160)[None, :] + sigma * rng.standard_normal((120, 160))
+    return np.clip(np.rint(ramp), 0, 255).astype(np.uint8)
+
+
+def test_dark_frames_with_a_signal_are_stretched_and_noise_and_good_frames_are_not():
+    dark = _noisy_ramp(1, 15, 0.3, 0)  # a clean signal over 15 grey levels
+    r = recover_exposure(dark)
+    assert r.failed and r.stretched and r.snr >= 20.0, r
+    assert (int(r.image.min()), int(r.image.max())) == (0, 255)
+    assert r.image.shape == dark.shape and r.image.dtype == np.uint8
+    assert int(dark.max()) <= 16  # the input is not modified
+    # Column means keep their order: a stretch, not a reshuffle.
+    means = r.image.mean(axis=0)
+    assert means[10] + 100 < means[80] < means[150] - 100
+    # Afterwards the frame is usable: β leaves the DVS-biased mode.
+    assert choose_beta(dark).bias == "dvs" and choose_beta(r.image).bias == "aps"
+
+    noise = _noisy_ramp(4, 10, 2.5, 1)  # 12 levels of range over a noise of 2.5
+    r = recover_exposure(noise)
+    assert r.failed and not r.stretched and r.image is noise  # returned as it is
+    assert r.noise == pytest.approx(2.5, rel=0.2) and r.snr < 20.0
+
+    good = _noisy_ramp(30, 220, 2.0, 2)
+    r = recover_exposure(good)
+    assert not r.failed and not r.stretched and np.array_equal(r.image, good) and r.snr == 0.0
+
+    saturated = _noisy_ramp(120, 600, 0.5, 3)  # 70 % of the pixels at 255
+    r = recover_exposure(saturated)
+    assert r.failed and r.stretched and choose_beta(r.image).bias == "dvs"
+
+    off = Config.from_toml("[fusion]\nrecover_exposure = false\n")
+    assert not recover_exposure(dark, off).stretched
+    strict = Config.from_toml("[fusion]\nrecover_min_snr = 1000.0\n")
+    assert not recover_exposure(dark, strict).stretched
+    with pytest.raises(InputError, match="frame"):
+        recover_exposure(dark.astype(np.float32))
+    with pytest.raises(InputError, match="frame"):
+        recover_exposure(dark[None])
+    with pytest.raises(ConfigError, match="recover_min_snr"):
+        Config.from_toml("[fusion]\nrecover_min_snr = -1.0\n")
 
 
 def test_fuse_blends_frame_and_event_intensity():

@@ -26,6 +26,7 @@ __all__ = [
     "_fuse",
     "_log_from_rust",
     "_r2d2_heads",
+    "_recover_exposure",
     "_reset_log_cache",
     "_solve_bal_file",
     "_solve_pose_graph_file",
@@ -291,6 +292,9 @@ def _choose_beta(
     frame: npt.NDArray[np.uint8], feature_count: int | None = None, config: Config | None = None
 ) -> tuple[str, float, float, float]: ...
 def _fuse(frame: npt.NDArray[np.uint8], e3ct: _F32, beta: float) -> npt.NDArray[np.uint8]: ...
+def _recover_exposure(
+    frame: npt.NDArray[np.uint8], config: Config | None = None
+) -> tuple[npt.NDArray[np.uint8] | None, bool, int, int, float, float]: ...
 def _r2d2_heads(features: _F32, weights: _F32, bias: _F32, upsample: int) -> tuple[_F32, _F32]: ...
 def _warp_to_frame(
     image: _F32,

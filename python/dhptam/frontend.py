@@ -57,7 +57,7 @@ from ._prefetch import prefetched
 from .datasets import EventWindow, FramePair, Sequence
 from .errors import InputError
 from .events import e3ct, shared_scales
-from .fusion import choose_beta, fuse, warp_and_fuse, warp_to_frame
+from .fusion import choose_beta, fuse, recover_exposure, warp_and_fuse, warp_to_frame
 from .geometry import SE3, RectifiedStereo, StereoRig
 
 MODES = ("fusion", "frames", "events")
@@ -132,7 +132,9 @@ class FrontendFrame:
     (``aps``, ``dvs``, ``frames``, ``events``). ``flood``: the event window is an
     illumination flood (:func:`is_flood`; always ``False`` in mode ``frames``).
     ``warp_depth_m``: depth in metres of the plane the events were warped through (0:
-    infinity; 0 in mode ``frames``).
+    infinity; 0 in mode ``frames``). ``stretched``: whether the left/right frame failed the
+    exposure test and was stretched to full contrast (:func:`dhptam.fusion.recover_exposure`;
+    ``frame_left``/``frame_right`` are then the stretched frames).
     """
 
     index: int
@@ -150,6 +152,7 @@ class FrontendFrame:
     events_right: _F32 | None
     flood: bool = False
     warp_depth_m: float = 0.0
+    stretched: tuple[bool, bool] = (False, False)
 
 
 @dataclass(frozen=True)
@@ -689,10 +692,16 @@ class Frontend:
         :attr:`plane_depth_m`; 0: infinity), chooses β and blends (see :meth:`process`)."""
         index, t_ns = prepared.index, prepared.t_ns
         frames = {"left": prepared.frames[0], "right": prepared.frames[1]}
+        stretched = (False, False)
+        if self.mode != "events":
+            # Failed frames with a good signal get their contrast back before β and features.
+            recovered = [recover_exposure(frames[side], self.config) for side in ("left", "right")]
+            frames = {"left": recovered[0].image, "right": recovered[1].image}
+            stretched = (recovered[0].stretched, recovered[1].stretched)
         if prepared.tensors is None or prepared.stats is None:
             return FrontendFrame(
                 index, t_ns, frames["left"], frames["right"], 0.0, 0.0, "frames", "frames", None,
-                frames["left"], frames["right"], None, None,
+                frames["left"], frames["right"], None, None, stretched=stretched,
             )  # fmt: skip
         depth = self.plane_depth_m if depth_m is None else float(depth_m)
         if not (np.isfinite(depth) and depth >= 0.0):
@@ -724,6 +733,7 @@ class Frontend:
             events_right=events["right"],
             flood=self.flood(index, stats),
             warp_depth_m=depth,
+            stretched=stretched,
         )
 
     def process(self, index: int) -> FrontendFrame:

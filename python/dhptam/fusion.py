@@ -8,6 +8,10 @@ All three run in the Rust core with the GIL released.
   ``[fusion] max_clipped_fraction`` of its pixels are under/over-exposed or fewer than
   ``min_features`` features were found on it; both capped at ``beta_max``; modes ``frames``
   (beta = 0) and ``events`` (beta = 1). See ``docs/FUSION.md``.
+* :func:`recover_exposure`: a frame that fails the exposure test (too dark or too bright) has
+  its grey levels between the 1st and 99th percentile stretched over 0–255 when that range
+  holds at least ``[fusion] recover_min_snr`` deviations of the frame's noise; the front-end
+  does this before choosing β (``[fusion] recover_exposure``).
 * :func:`fuse`: ``(1 - beta) C + beta * 255 * D`` with ``D`` the per-pixel maximum of the
   normalised, warped E3CT channels.
 * :func:`warp_to_frame`: the rectified E3CT resampled into the rectified frame camera through
@@ -31,6 +35,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import _core
+from .errors import InputError
 from .geometry import SE3
 
 
@@ -50,6 +55,62 @@ def choose_beta(
     """β for an 8-bit grayscale frame (``[fusion]`` of ``config``, defaults otherwise)."""
     image = np.ascontiguousarray(frame, dtype=np.uint8)
     return BetaDecision(*_core._choose_beta(image, feature_count, config))
+
+
+@dataclass(frozen=True)
+class ExposureRecovery:
+    """What :func:`recover_exposure` found: ``image`` is the frame to use (the stretched copy,
+    or the input itself when it was not stretched); ``failed``: the exposure test failed
+    (``clipped_fraction`` above ``[fusion] max_clipped_fraction``); ``low``/``high``: the grey
+    levels at the 1st/99th percentile; ``noise``: the noise deviation in grey levels (0 when
+    the frame passed and it was not estimated)."""
+
+    image: npt.NDArray[np.uint8]
+    failed: bool
+    stretched: bool
+    low: int
+    high: int
+    noise: float
+    clipped_fraction: float
+
+    @property
+    def snr(self) -> float:
+        """``(high - low) / noise``: noise deviations in the stretched range (inf without
+        noise, 0 when not estimated)."""
+        span = float(self.high - self.low)
+        if self.noise > 0.0:
+            return span / self.noise
+        return float("inf") if self.failed and span > 0 else 0.0
+
+
+def recover_exposure(frame: npt.NDArray[np.uint8], config: _core.Config | None = None) -> ExposureRecovery:
+    """Stretches an under- or over-exposed 8-bit frame (H, W) to full contrast when its signal
+    is well above its noise (``[fusion] recover_exposure``, ``recover_min_snr``; see
+    ``docs/FUSION.md``). The input is never modified.
+
+    >>> import numpy as np
+    >>> from dhptam.fusion import recover_exposure
+    >>> dark = np.tile(np.arange(16, dtype=np.uint8), (32, 4))  # a clean ramp over 0..15
+    >>> r = recover_exposure(dark)
+    >>> r.failed, r.stretched, int(r.image.min()), int(r.image.max())
+    (True, True, 0, 255)
+    """
+    image = np.asarray(frame)
+    if image.ndim != 2 or image.dtype != np.uint8:
+        raise InputError(
+            f"frame must be a (H, W) uint8 image, got {image.dtype} {image.shape}", field="frame"
+        )
+    image = np.ascontiguousarray(image)
+    stretched, failed, low, high, noise, clipped = _core._recover_exposure(image, config)
+    return ExposureRecovery(
+        image=image if stretched is None else stretched,
+        failed=bool(failed),
+        stretched=stretched is not None,
+        low=int(low),
+        high=int(high),
+        noise=float(noise),
+        clipped_fraction=float(clipped),
+    )
 
 
 def fuse(frame: npt.NDArray[np.uint8], e3ct: npt.NDArray[np.float32], beta: float) -> npt.NDArray[np.uint8]:
@@ -131,4 +192,12 @@ def warp_and_fuse(
     )
 
 
-__all__ = ["BetaDecision", "choose_beta", "fuse", "warp_and_fuse", "warp_to_frame"]
+__all__ = [
+    "BetaDecision",
+    "ExposureRecovery",
+    "choose_beta",
+    "fuse",
+    "recover_exposure",
+    "warp_and_fuse",
+    "warp_to_frame",
+]

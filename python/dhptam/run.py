@@ -14,8 +14,9 @@ others:
 
 Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
 seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inliers, β, fusion
-bias, flood flag, ``hot_pixels`` masked, bridge, depth ``warp_depth_m`` of the event→frame warp
-plane, stage times), ``timing.json`` (per stage statistics), ``config.toml`` (resolved) and
+bias, flood flag, ``hot_pixels`` masked, ``stretched`` frames of the pair (exposure recovered),
+bridge, depth ``warp_depth_m`` of the event→frame warp plane, stage times), ``timing.json``
+(per stage statistics), ``config.toml`` (resolved) and
 ``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
 a file; Ctrl-C or a failure mid-run still writes everything done so far.
 
@@ -774,6 +775,7 @@ def _track_frames(
                 "bias": frame.bias,
                 "flood": int(frame.flood),
                 "hot_pixels": 0 if (st := frame.e3ct_stats) is None else st.hot_left + st.hot_right,
+                "stretched": sum(frame.stretched),
                 "warp_depth_m": f"{frame.warp_depth_m:.4f}",
                 "bridge": bridged,
                 "reading_s": round(t_read, 6),

@@ -229,6 +229,13 @@ config_section! {
         /// A frame on which fewer features than this are detected switches the fusion to the
         /// DVS-biased mode.
         min_features: u32 = 100,
+        /// A frame that fails the exposure test (`max_clipped_fraction`) has its grey levels
+        /// between the 1st and 99th percentile stretched over 0–255 before β is chosen and
+        /// features are extracted, in modes `fusion` and `frames`, when that range holds at
+        /// least `recover_min_snr` noise deviations (`fusion::exposure`, docs/FUSION.md).
+        recover_exposure: bool = true,
+        /// Least range / noise ratio of a failed frame for it to be stretched; ≥ 0.
+        recover_min_snr: f64 = 20.0,
         /// Depth in metres of the plane the event pixels are warped through; 0 warps at
         /// infinity (rotation only).
         plane_depth_m: f64 = 0.0,
@@ -880,6 +887,12 @@ impl FusionConfig {
             self.max_clipped_fraction,
         )?;
         check(
+            "fusion.recover_min_snr",
+            self.recover_min_snr.is_finite() && self.recover_min_snr >= 0.0,
+            "a ratio >= 0",
+            self.recover_min_snr,
+        )?;
+        check(
             "fusion.plane_depth_m",
             self.plane_depth_m.is_finite() && self.plane_depth_m >= 0.0,
             "0 (infinity) or a positive depth",
@@ -1153,6 +1166,17 @@ mod tests {
             let err = Config::from_toml_str(&format!("[events]\n{bad}\n"), "h.toml").unwrap_err();
             let key = bad.split(' ').next().unwrap();
             assert!(err.to_string().contains(&format!("events.{key}")), "{err}");
+        }
+    }
+
+    #[test]
+    fn exposure_recovery_settings_are_checked() {
+        let off = Config::from_toml_str("[fusion]\nrecover_exposure = false\n", "e.toml").unwrap();
+        assert!(!off.fusion.recover_exposure);
+        assert!(Config::default().fusion.recover_exposure);
+        for bad in ["recover_min_snr = -1.0", "recover_min_snr = inf"] {
+            let err = Config::from_toml_str(&format!("[fusion]\n{bad}\n"), "e.toml").unwrap_err();
+            assert!(err.to_string().contains("fusion.recover_min_snr"), "{err}");
         }
     }
 

@@ -50,6 +50,54 @@ pub fn _choose_beta(
     ))
 }
 
+/// What the exposure check found, and the stretched frame when it was stretched:
+/// `(image or None, failed, low, high, noise, clipped_fraction)`.
+type ExposureResult<'py> = (Option<Bound<'py, PyArray2<u8>>>, bool, u8, u8, f64, f64);
+
+/// Checks an 8-bit frame's exposure and stretches a failed frame with a good signal
+/// (`fusion::recover_exposure`); the input is not modified.
+#[pyfunction]
+#[pyo3(signature = (frame, config=None))]
+pub fn _recover_exposure<'py>(
+    py: Python<'py>,
+    frame: PyReadonlyArray2<'py, u8>,
+    config: Option<&PyConfig>,
+) -> PyResult<ExposureResult<'py>> {
+    let (h, w) = (frame.shape()[0], frame.shape()[1]);
+    let pixels = frame
+        .as_slice()
+        .map_err(|_| input_error("frame", "a C-contiguous uint8 image", "a strided view"))?;
+    let settings = settings(config);
+    // The frame is copied only when it is to be stretched (most frames pass the test).
+    let (image, check) = py
+        .detach_guarded("fusion::_recover_exposure", || {
+            fusion::check_exposure(pixels, w, &settings).map(|check| {
+                let image = check.stretched.then(|| {
+                    let mut image = pixels.to_vec();
+                    fusion::stretch_levels(&mut image, w, check.low, check.high);
+                    image
+                });
+                (image, check)
+            })
+        })?
+        .py()?;
+    let stretched = if let Some(image) = image {
+        let array = Array2::from_shape_vec((h, w), image)
+            .map_err(|e| input_error("frame", "a consistent size", e))?;
+        Some(array.into_pyarray(py))
+    } else {
+        None
+    };
+    Ok((
+        stretched,
+        check.failed,
+        check.low,
+        check.high,
+        check.noise,
+        check.clipped_fraction,
+    ))
+}
+
 /// `(1 − β) frame + β · 255 · max_c(e3ct)`, rounded to uint8.
 #[pyfunction]
 pub fn _fuse<'py>(

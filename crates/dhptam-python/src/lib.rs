@@ -90,6 +90,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(features::_r2d2_heads, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_choose_beta, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_fuse, m)?)?;
+    m.add_function(wrap_pyfunction!(fusion::_recover_exposure, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_warp_to_frame, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_warp_and_fuse, m)?)?;
     m.add_class::<fusion::PyEventRectifier>()?;
