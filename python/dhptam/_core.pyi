@@ -380,9 +380,9 @@ class HotPixels:
         width: int,
         height: int,
         *,
-        ratio: float = 4.0,
-        min_rate_hz: float = 50.0,
-        time_constant_s: float = 1.0,
+        ratio: float | None = None,
+        min_rate_hz: float | None = None,
+        time_constant_s: float | None = None,
     ) -> HotPixels: ...
     def update(self, x: _U16, y: _U16, duration_s: float) -> bool: ...
     def pixels(self) -> npt.NDArray[np.uint32]: ...

@@ -379,10 +379,12 @@ class HotPixels:
         width: int,
         height: int,
         *,
-        ratio: float = 4.0,
-        min_rate_hz: float = 50.0,
-        time_constant_s: float = 1.0,
+        ratio: float | None = None,
+        min_rate_hz: float | None = None,
+        time_constant_s: float | None = None,
     ) -> None:
+        """A detector for a ``width × height`` sensor; a parameter left out (``None``) takes
+        its ``[events] hot_pixel_*`` default (``dhptam.Config().to_dict()["events"]``)."""
         self._inner = _core.HotPixels(
             int(width), int(height), ratio=ratio, min_rate_hz=min_rate_hz, time_constant_s=time_constant_s
         )

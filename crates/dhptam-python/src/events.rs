@@ -293,20 +293,22 @@ pub struct PyHotPixels {
 
 #[pymethods]
 impl PyHotPixels {
-    /// A detector for a `width × height` sensor (raw pixels).
+    /// A detector for a `width × height` sensor (raw pixels); a parameter left out takes the
+    /// `[events] hot_pixel_*` default.
     #[new]
-    #[pyo3(signature = (width, height, *, ratio = 4.0, min_rate_hz = 50.0, time_constant_s = 1.0))]
+    #[pyo3(signature = (width, height, *, ratio = None, min_rate_hz = None, time_constant_s = None))]
     fn new(
         width: u32,
         height: u32,
-        ratio: f64,
-        min_rate_hz: f64,
-        time_constant_s: f64,
+        ratio: Option<f64>,
+        min_rate_hz: Option<f64>,
+        time_constant_s: Option<f64>,
     ) -> PyResult<Self> {
+        let defaults = events::HotPixelParams::default();
         let params = events::HotPixelParams {
-            ratio,
-            min_rate_hz,
-            time_constant_s,
+            ratio: ratio.unwrap_or(defaults.ratio),
+            min_rate_hz: min_rate_hz.unwrap_or(defaults.min_rate_hz),
+            time_constant_s: time_constant_s.unwrap_or(defaults.time_constant_s),
         };
         Ok(Self {
             inner: events::HotPixels::new(width, height, params).py()?,
