@@ -69,7 +69,8 @@ def _read_frames_csv(path: Path) -> dict[str, list[str]]:
 
 def _plot_overview(rows: list[DemoRow], reference: Any, path: Path) -> None:
     """Top view of every mode's aligned trajectory against ground truth, their errors over
-    time, and β / fusion bias over time (fusion mode)."""
+    time, and β / fusion bias over time (fusion mode; a band where the frame was stretched by
+    exposure recovery)."""
     from matplotlib.figure import Figure
 
     from .trajectory import atomic_write_bytes
@@ -114,6 +115,11 @@ def _plot_overview(rows: list[DemoRow], reference: Any, path: Path) -> None:
             beta.plot(t, b, "C0", lw=1.2, label="β (left, fusion)")
             dvs = np.asarray([x == "dvs" for x in data["bias"]])
             beta.fill_between(t, 0, 1, where=dvs, color="C1", alpha=0.15, step="mid", label="DVS-biased")
+            if "stretched" in data:  # frames.csv of runs before exposure recovery lack it
+                stretched = np.asarray([int(x) > 0 for x in data["stretched"]])
+                beta.fill_between(
+                    t, 0, 0.05, where=stretched, color="C2", alpha=0.6, step="mid", label="frame stretched"
+                )
         lost = np.asarray([s == "lost" for s in data["state"]])
         if lost.any():
             beta.plot(
