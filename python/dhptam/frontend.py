@@ -9,11 +9,14 @@ For fusion frame k (time ``t_f^k = t_cam + t_exp / 2``) the pipeline is
 3. the E3CT of each side, normalised with per-channel scales shared by left and right;
 4. warped into the **rectified frame camera** of the same side (``warp_to_frame``: eq. 5
    with a real perspective divide through a fronto-parallel plane, plus δP_align);
-5. β chosen online from the rectified frame (APS/DVS bias, ``[fusion]``; before step 4) and
-   the blend ``(1 − β) C + β D``, done in the warp's pass (``warp_and_fuse``).
+5. exposure recovery of the rectified frame: one that fails the exposure test but holds a
+   clean signal is stretched to full contrast (``recover_exposure``, ``[fusion]
+   recover_exposure``; ``docs/FUSION.md``);
+6. β chosen online from that frame (APS/DVS bias, ``[fusion]``; before step 4) and the blend
+   ``(1 − β) C + β D``, done in the warp's pass (``warp_and_fuse``).
 
-Modes: ``fusion`` (the above), ``frames`` (rectified frames only; no event is read) and
-``events`` (the warped E3CT intensity alone, β = 1).
+Modes: ``fusion`` (the above), ``frames`` (rectified, recovered frames only; no event is read)
+and ``events`` (the warped E3CT intensity alone, β = 1).
 
 Illumination floods (``[fusion] flood_*``): a global lighting change makes every event pixel
 fire as the light ramps, so a window holds many times the usual event count, almost all of
