@@ -25,6 +25,9 @@ one polarity, and its E3CT shows the sensor's threshold pattern instead of scene
 ``flood_history`` windows and one polarity's share at least ``flood_polarity``);
 :attr:`FrontendFrame.flood` carries the flag, the run then predicts the pose of that frame
 instead of tracking it (``flood_predict``) and :meth:`Frontend.bridge_images` spans the flood.
+A flood frame leaving a DVS-biased segment whose frames are fine is rendered from the frames
+alone and tracked (:meth:`Frontend.across_flood`, ``flood_frames``): the flood spoils the
+events, not the frames.
 
 Depth of the warp plane: ``[fusion] plane_depth_m`` (default 0 = infinity, a rotation-only
 homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM on the first
@@ -48,7 +51,7 @@ and joins them. ``prefetch=0`` runs everything in the consumer's thread.
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -288,6 +291,8 @@ class Frontend:
         self.flood_polarity: float = float(fusion_cfg["flood_polarity"])
         self.flood_history: int = int(fusion_cfg["flood_history"])
         self.flood_predict: bool = bool(fusion_cfg["flood_predict"])
+        self.flood_frames: bool = bool(fusion_cfg["flood_frames"])
+        self.min_features: int = int(fusion_cfg["min_features"])
         self.warp_depth: str = str(fusion_cfg["warp_depth"])
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
         self.event_disparity_enabled: bool = bool(fusion_cfg["event_disparity"])
@@ -743,6 +748,41 @@ class Frontend:
         """Runs the pipeline on frame ``index`` in the calling thread, warping through
         :attr:`plane_depth_m`."""
         return self.finish(self.prepare(index))
+
+    def across_flood(self, previous: FrontendFrame | None, current: FrontendFrame) -> FrontendFrame:
+        """``current`` as the run tracks it after ``previous``, the last frame that was not a
+        flood: a flood frame leaving a DVS-biased segment (``previous.bias == "dvs"``) whose
+        frames both pass the exposure test (APS-biased) is rendered from its frames alone (β =
+        0, bias ``frames``; ``[fusion] flood_frames``). Its events are the flood's threshold
+        pattern, its frames are fine, and leaving a DVS-biased segment across a flood there is
+        no bridge to render from them anyway (:meth:`bridge_images`). Entering one, the flood
+        frames stay predicted: the bridge needs the clean events of the last frame before them.
+        Any other frame is returned unchanged."""
+        if (
+            self.mode != "fusion"
+            or not (self.flood_predict and self.flood_frames and current.flood)
+            or previous is None
+            or previous.bias != "dvs"
+            or (current.bias, current.bias_right) != ("aps", "aps")
+        ):
+            return current
+        return replace(
+            current,
+            left=current.frame_left,
+            right=current.frame_right,
+            beta_left=0.0,
+            beta_right=0.0,
+            bias="frames",
+            bias_right="frames",
+        )
+
+    def predicts(self, frame: FrontendFrame, features: int) -> bool:
+        """Whether the run predicts ``frame``'s pose instead of tracking it: a flood frame
+        (``[fusion] flood_predict``), unless :meth:`across_flood` rendered it from its frames
+        alone and ``features`` (the fewer of its two images') reach ``[fusion] min_features``."""
+        if not (frame.flood and self.flood_predict):
+            return False
+        return not (frame.bias == "frames" and features >= self.min_features)
 
     def bridge_images(self, previous: FrontendFrame, current: FrontendFrame) -> BridgeImages | None:
         """The bridge rendering at a switch between frames ``previous`` and ``current`` (see

@@ -638,9 +638,10 @@ def _track_all(
         """Frame k's warp, blend and bridge rendering, through frame k−1's tracked depth."""
         depth = frontend.quantised_depth(feed.wait(prepared.index), warped_at[0])
         warped_at[0] = depth
-        frame = frontend.finish(prepared, depth)
+        frame = frontend.across_flood(previous[0], frontend.finish(prepared, depth))
         bridge = None if previous[0] is None else frontend.bridge_images(previous[0], frame)
-        # A flood frame is predicted, not tracked: the bridge spans it, from the last clean frame.
+        # A flood frame is predicted (or, leaving a DVS-biased segment, tracked on its frames
+        # alone): a bridge spans it, from the last clean frame.
         if not (frame.flood and frontend.flood_predict):
             previous[0] = frame
         return frame, bridge
@@ -679,7 +680,7 @@ def _track_all(
         try:
             _track_frames(
                 extracted, system, outputs, states, realtime, bar, sink, interrupt_pending,
-                frontend.flood_predict, feed,
+                frontend.predicts, feed,
                 _image_models(frontend),
             )  # fmt: skip
         finally:
@@ -725,15 +726,16 @@ def _track_frames(
     bar: Any,
     sink: Any,
     interrupt_pending: Callable[[], bool],
-    flood_predict: bool = False,
+    predicts: Callable[[Any, int], bool] | None = None,
     feed: _DepthFeed | None = None,
     model: Callable[[str, float], ImageModel] = _plain_model,
 ) -> None:
     """The tracking loop on the caller's thread: one frame tracked and recorded per step; a
     Ctrl-C takes effect between frames, so the trajectory and ``frames.csv`` hold the same
-    frames. With ``flood_predict`` a flood frame's pose is predicted by the motion model
-    (``System.predict``) instead of tracked, and the last clean frame stays the one a bridge
-    keyframe may start from. After each frame the median depth of the map points it was
+    frames. A frame for which ``predicts(frame, features)`` holds (``Frontend.predicts``: a
+    flood frame, ``features`` the fewer keypoints of its two images) has its pose predicted by
+    the motion model (``System.predict``) instead of tracked, and the last clean frame stays
+    the one a bridge keyframe may start from. After each frame the median depth of the map points it was
     tracked with goes to ``feed`` (the next frame's warp depth). ``model`` gives each
     image's :class:`ImageModel` from its fusion bias and warp depth."""
     wall0 = time.perf_counter()
@@ -752,7 +754,7 @@ def _track_frames(
         if outputs.recorder is not None:
             outputs.recorder.add_frame(frame.index)
         t0 = time.perf_counter()
-        if frame.flood and flood_predict:
+        if predicts is not None and predicts(frame, min(len(left.keypoints), len(right.keypoints))):
             r, bridged = system.predict(frame.t_ns), "none"
         else:
             r, bridged = _track_bridged(system, frame, (left, right), bridge, last, model)
