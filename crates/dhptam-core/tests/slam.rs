@@ -8,9 +8,13 @@ use dhptam_core::geometry::{Se3, So3};
 use dhptam_core::matching::Descriptors;
 use dhptam_core::slam::loop_closing::verify_loop;
 use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
-use dhptam_core::slam::tracking::{insert_keyframe, stereo_match, StereoFrame};
+use dhptam_core::slam::tracking::{
+    insert_keyframe, retrack_after_correction, stereo_match, track_local_map, StereoFrame,
+    TrackContext, TrackerState,
+};
 use dhptam_core::slam::{
-    fuse_and_refind, DisparityCorrection, FrameFeatures, Map, System, TrackResult, TrackState,
+    fuse_and_refind, DisparityCorrection, FrameFeatures, FrameRecord, Map, System, TrackResult,
+    TrackState,
 };
 use nalgebra::Vector3;
 
@@ -247,29 +251,10 @@ fn relocalises_after_a_jump_to_a_known_place() {
 fn insert_frame(map: &mut Map, f: &SyntheticFrame, world_from_cam: Se3, mono: &[usize]) -> u64 {
     let config = Config::default();
     let calib = SyntheticOptions::default().calib;
-    let xy = |v: &[f32]| -> Vec<[f32; 2]> { v.chunks_exact(2).map(|c| [c[0], c[1]]).collect() };
-    let (lxy, rxy) = (xy(&f.left.keypoints), xy(&f.right.keypoints));
-    let ld = Descriptors::float(&f.left.descriptors, 32).unwrap();
-    let rd = Descriptors::float(&f.right.descriptors, 32).unwrap();
-    let mut u_right = stereo_match(
-        &calib,
-        &config.tracking,
-        &config.triangulation,
-        &lxy,
-        ld,
-        &rxy,
-        rd,
-    );
+    let mut frame = stereo_frame(f);
     for &i in mono {
-        u_right[i] = f32::NAN;
+        frame.u_right[i] = f32::NAN;
     }
-    let frame = StereoFrame {
-        t_ns: f.t_ns,
-        sigmas: vec![1.0; lxy.len()],
-        keypoints: lxy,
-        u_right,
-        descriptors: ld,
-    };
     insert_keyframe(
         map,
         &frame,
@@ -279,6 +264,91 @@ fn insert_frame(map: &mut Map, f: &SyntheticFrame, world_from_cam: Se3, mono: &[
         &config.triangulation,
     )
     .0
+}
+
+/// The stereo frame the tracker makes of a synthetic frame (its left keypoints stereo-matched).
+fn stereo_frame(f: &SyntheticFrame) -> StereoFrame<'_> {
+    let config = Config::default();
+    let calib = SyntheticOptions::default().calib;
+    let xy = |v: &[f32]| -> Vec<[f32; 2]> { v.chunks_exact(2).map(|c| [c[0], c[1]]).collect() };
+    let (lxy, rxy) = (xy(&f.left.keypoints), xy(&f.right.keypoints));
+    let ld = Descriptors::float(&f.left.descriptors, 32).unwrap();
+    let rd = Descriptors::float(&f.right.descriptors, 32).unwrap();
+    let u_right = stereo_match(
+        &calib,
+        &config.tracking,
+        &config.triangulation,
+        &lxy,
+        ld,
+        &rxy,
+        rd,
+    );
+    StereoFrame {
+        t_ns: f.t_ns,
+        sigmas: vec![1.0; lxy.len()],
+        keypoints: lxy,
+        u_right,
+        descriptors: ld,
+    }
+}
+
+#[test]
+fn a_frame_tracked_before_a_loop_correction_is_tracked_again_after_it() {
+    // Threaded mapping: the loop-closing thread may move the map between the tracker's read of
+    // it and its commit. The frame's pose, in the old coordinates, must not be stored relative
+    // to a keyframe that has moved: it is tracked again against the corrected map.
+    let o = SyntheticOptions::default();
+    let frames = generate(&o);
+    let config = Config::default();
+    let ctx = TrackContext {
+        calib: &o.calib,
+        cfg: &config.tracking,
+        tri: &config.triangulation,
+    };
+    let (f0, f1) = (&frames[0], &frames[1]);
+    let mut map = Map::default();
+    let kf = insert_frame(&mut map, f0, f0.world_from_cam, &[]);
+    let record = FrameRecord {
+        t_ns: f0.t_ns,
+        keyframe: kf,
+        kf_from_cam: Se3::identity(),
+        predicted: false,
+    };
+    let state = TrackerState {
+        last: Some(record),
+        reference: Some(kf),
+        measured: Some(record),
+        ..Default::default()
+    };
+    let frame = stereo_frame(f1);
+    let gap = |a: &Se3, b: &Se3| (a.inverse() * *b).translation.norm();
+    let truth = f1.world_from_cam.inverse();
+    let tracked = track_local_map(&map, &state, &frame, &ctx, f0.world_from_cam.inverse()).unwrap();
+    assert!(gap(&tracked.cam_from_world, &truth) < 0.01);
+    // No correction since: the tracked pose stands.
+    assert!(retrack_after_correction(&map, &state, &frame, &ctx, map.corrections, 15).is_none());
+
+    // A loop correction moves the whole map: world' = correction · world.
+    let correction = Se3::new(
+        So3::exp(&Vector3::new(0.0, 4f64.to_radians(), 0.0)),
+        Vector3::new(0.15, -0.05, 0.1),
+    );
+    let before = map.corrections;
+    for k in map.keyframes.values_mut() {
+        k.world_from_cam = correction * k.world_from_cam;
+    }
+    for p in map.points.values_mut() {
+        p.position = correction.transform_point(&p.position);
+        p.normal = correction.rotation * p.normal;
+    }
+    map.corrections += 1;
+    let (again, last) = retrack_after_correction(&map, &state, &frame, &ctx, before, 15).unwrap();
+    let corrected = truth * correction.inverse();
+    assert!(gap(&again.cam_from_world, &corrected) < 0.01);
+    assert!(again.inliers >= 15);
+    assert!(gap(&last.unwrap(), &(correction * f0.world_from_cam)) < 1e-9);
+    // The pose tracked before the correction is off by it in the new coordinates.
+    assert!(gap(&tracked.cam_from_world, &corrected) > 0.1);
 }
 
 /// Two keyframes at the two ends of a loop (a bit more than one turn apart), each with its own

@@ -14,7 +14,8 @@ use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
     bootstrap, bridge_keyframe, commit_tracked, last_pose, predict_only, reinitialise,
-    stereo_match, track_local_map, Bridge, StereoFrame, TrackContext, TrackerState,
+    retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame, TrackContext,
+    TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -556,7 +557,7 @@ impl System {
             let mut map = write_lock(&shared.map);
             bootstrap(&mut map, &mut self.state, &frame, &ctx)
         } else {
-            let (tracked, previous, predicted) = {
+            let (tracked, previous, predicted, corrections) = {
                 let map = read_lock(&shared.map);
                 let previous = last_pose(&map, &self.state);
                 let last_cam_from_world = previous.unwrap_or_else(Se3::identity).inverse();
@@ -564,7 +565,7 @@ impl System {
                 let tracked = shared.time("track_local_map", || {
                     track_local_map(&map, &self.state, &frame, &ctx, predicted)
                 });
-                (tracked, previous, predicted)
+                (tracked, previous, predicted, map.corrections)
             };
             // After a loss the motion model is stale (the last pose is frames old): picking
             // the track up again from it needs the evidence a relocalisation needs, and the
@@ -576,7 +577,22 @@ impl System {
                 ctx.cfg.min_tracked
             };
             match tracked.filter(|t| t.inliers >= needed as usize) {
-                Some(t) => {
+                Some(mut t) => {
+                    let mut map = write_lock(&shared.map);
+                    let mut previous = previous;
+                    // A loop correction between the tracking above and this commit: track
+                    // again against the corrected map, under the write lock.
+                    if let Some((retracked, last)) = retrack_after_correction(
+                        &map,
+                        &self.state,
+                        &frame,
+                        &ctx,
+                        corrections,
+                        needed as usize,
+                    ) {
+                        t = retracked;
+                        previous = last;
+                    }
                     if reacquired {
                         self.totals.relocalisations += 1;
                         log::info!(
@@ -584,7 +600,6 @@ impl System {
                             t.inliers
                         );
                     }
-                    let mut map = write_lock(&shared.map);
                     self.tracked_depth = median_point_depth(
                         &map,
                         &t.cam_from_world,

@@ -651,6 +651,43 @@ pub fn last_pose(map: &Map, state: &TrackerState) -> Option<Se3> {
     state.last.as_ref().and_then(|r| map.frame_pose(r))
 }
 
+/// The frame tracked again when a loop correction moved the map after it was tracked
+/// (threaded mapping: the loop-closing thread may correct between the tracker's read of the
+/// map and its commit). `corrections` is [`Map::corrections`] when the frame was tracked;
+/// while it is unchanged the tracked pose stands and this returns `None`. Otherwise the pose
+/// is in the old coordinates and, stored relative to a keyframe that has since moved, would
+/// be wrong by the correction: the frame is tracked again from the constant-velocity
+/// prediction off the corrected last pose, giving `Some((tracked, last pose))` when that
+/// has at least `needed` inliers, `None` when not (the caller keeps its pose).
+pub fn retrack_after_correction(
+    map: &Map,
+    state: &TrackerState,
+    frame: &StereoFrame,
+    ctx: &TrackContext,
+    corrections: u64,
+    needed: usize,
+) -> Option<(Tracked, Option<Se3>)> {
+    if map.corrections == corrections {
+        return None;
+    }
+    let last = last_pose(map, state);
+    let predicted = state.velocity * last.unwrap_or_else(Se3::identity).inverse();
+    let tracked =
+        track_local_map(map, state, frame, ctx, predicted).filter(|t| t.inliers >= needed);
+    match &tracked {
+        Some(t) => log::info!(
+            "tracking: t={} ns tracked again after a loop correction ({} inliers)",
+            frame.t_ns,
+            t.inliers
+        ),
+        None => log::warn!(
+            "tracking: t={} ns not tracked again after a loop correction; its pose is kept",
+            frame.t_ns
+        ),
+    }
+    tracked.map(|t| (t, last))
+}
+
 /// Records a tracked frame: keyframe decision, keyframe insertion, trajectory, tracker state.
 pub fn commit_tracked(
     map: &mut Map,
