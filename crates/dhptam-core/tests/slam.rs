@@ -9,8 +9,8 @@ use dhptam_core::matching::Descriptors;
 use dhptam_core::slam::loop_closing::verify_loop;
 use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
 use dhptam_core::slam::tracking::{
-    insert_keyframe, retrack_after_correction, stereo_match, track_local_map, StereoFrame,
-    TrackContext, TrackerState,
+    insert_keyframe, reference_motion, retrack_after_correction, stereo_match, track_local_map,
+    StereoFrame, TrackContext, TrackerState,
 };
 use dhptam_core::slam::{
     fuse_and_refind, DisparityCorrection, FrameFeatures, FrameRecord, Map, System, TrackResult,
@@ -349,6 +349,42 @@ fn a_frame_tracked_before_a_loop_correction_is_tracked_again_after_it() {
     assert!(gap(&last.unwrap(), &(correction * f0.world_from_cam)) < 1e-9);
     // The pose tracked before the correction is off by it in the new coordinates.
     assert!(gap(&tracked.cam_from_world, &corrected) > 0.1);
+}
+
+#[test]
+fn a_pose_tracked_before_its_keyframe_moved_is_carried_with_it() {
+    // A bundle adjustment written back between tracking and commit moves the reference
+    // keyframe and its points: the tracked pose is carried by the keyframe's motion.
+    let o = SyntheticOptions::default();
+    let frames = generate(&o);
+    let mut map = Map::default();
+    let kf = insert_frame(&mut map, &frames[0], frames[0].world_from_cam, &[]);
+    let state = TrackerState {
+        reference: Some(kf),
+        ..Default::default()
+    };
+    let then = map.keyframes[&kf].world_from_cam;
+    assert!(reference_motion(&map, &state, Some(then)).is_none());
+    assert!(reference_motion(&map, &state, None).is_none());
+    let step = Se3::new(
+        So3::exp(&Vector3::new(0.01, 0.0, -0.02)),
+        Vector3::new(0.03, 0.0, 0.01),
+    );
+    map.keyframes.get_mut(&kf).unwrap().world_from_cam = step * then;
+    let moved = reference_motion(&map, &state, Some(then)).unwrap();
+    // A frame tracked at `world_from_cam` relative to the old keyframe pose keeps its pose
+    // relative to the keyframe once carried.
+    let world_from_cam = frames[1].world_from_cam;
+    let carried = moved * world_from_cam;
+    let before = then.inverse() * world_from_cam;
+    let after = map.keyframes[&kf].world_from_cam.inverse() * carried;
+    assert!((before.inverse() * after).log().norm() < 1e-12);
+    // A reference that is gone: nothing to carry.
+    let gone = TrackerState {
+        reference: Some(kf + 100),
+        ..Default::default()
+    };
+    assert!(reference_motion(&map, &gone, Some(then)).is_none());
 }
 
 /// Two keyframes at the two ends of a loop (a bit more than one turn apart), each with its own

@@ -13,9 +13,9 @@ use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
-    bootstrap, bridge_keyframe, commit_tracked, last_pose, predict_only, reinitialise,
-    retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame, TrackContext,
-    TrackerState,
+    bootstrap, bridge_keyframe, commit_tracked, last_pose, predict_only, reference_motion,
+    reinitialise, retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame,
+    TrackContext, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -557,7 +557,7 @@ impl System {
             let mut map = write_lock(&shared.map);
             bootstrap(&mut map, &mut self.state, &frame, &ctx)
         } else {
-            let (tracked, previous, predicted, corrections) = {
+            let (tracked, previous, predicted, corrections, reference_pose) = {
                 let map = read_lock(&shared.map);
                 let previous = last_pose(&map, &self.state);
                 let last_cam_from_world = previous.unwrap_or_else(Se3::identity).inverse();
@@ -565,7 +565,18 @@ impl System {
                 let tracked = shared.time("track_local_map", || {
                     track_local_map(&map, &self.state, &frame, &ctx, predicted)
                 });
-                (tracked, previous, predicted, map.corrections)
+                let reference_pose = self
+                    .state
+                    .reference
+                    .and_then(|r| map.keyframes.get(&r))
+                    .map(|k| k.world_from_cam);
+                (
+                    tracked,
+                    previous,
+                    predicted,
+                    map.corrections,
+                    reference_pose,
+                )
             };
             // After a loss the motion model is stale (the last pose is frames old): picking
             // the track up again from it needs the evidence a relocalisation needs, and the
@@ -580,8 +591,10 @@ impl System {
                 Some(mut t) => {
                     let mut map = write_lock(&shared.map);
                     let mut previous = previous;
-                    // A loop correction between the tracking above and this commit: track
-                    // again against the corrected map, under the write lock.
+                    // The mapping threads may have moved the map between the tracking above
+                    // and this commit. A loop correction: track again against the corrected
+                    // map, under the write lock. A bundle adjustment (or a failed re-track):
+                    // the pose moves with the reference keyframe.
                     if let Some((retracked, last)) = retrack_after_correction(
                         &map,
                         &self.state,
@@ -592,6 +605,10 @@ impl System {
                     ) {
                         t = retracked;
                         previous = last;
+                    } else if let Some(moved) = reference_motion(&map, &self.state, reference_pose)
+                    {
+                        t.cam_from_world = t.cam_from_world * moved.inverse();
+                        previous = last_pose(&map, &self.state);
                     }
                     if reacquired {
                         self.totals.relocalisations += 1;

@@ -651,6 +651,21 @@ pub fn last_pose(map: &Map, state: &TrackerState) -> Option<Se3> {
     state.last.as_ref().and_then(|r| map.frame_pose(r))
 }
 
+/// How the reference keyframe moved since `then`, its `world_from_cam` when the frame was
+/// tracked: `now · then⁻¹`, the change of coordinates of the map around it (threaded mapping:
+/// a bundle adjustment may write back between the tracker's read of the map and its commit).
+/// A pose tracked against the old points is carried into the new coordinates by it
+/// (`world_from_cam' = motion · world_from_cam`), so that stored relative to the moved
+/// keyframe it stays where it was measured. `None` when the keyframe did not move or is gone.
+pub fn reference_motion(map: &Map, state: &TrackerState, then: Option<Se3>) -> Option<Se3> {
+    let then = then?;
+    let now = state
+        .reference
+        .and_then(|r| map.keyframes.get(&r))?
+        .world_from_cam;
+    (now != then).then(|| now * then.inverse())
+}
+
 /// The frame tracked again when a loop correction moved the map after it was tracked
 /// (threaded mapping: the loop-closing thread may correct between the tracker's read of the
 /// map and its commit). `corrections` is [`Map::corrections`] when the frame was tracked;
