@@ -735,9 +735,9 @@ def _track_frames(
     frames. A frame for which ``predicts(frame, features)`` holds (``Frontend.predicts``: a
     flood frame, ``features`` the fewer keypoints of its two images) has its pose predicted by
     the motion model (``System.predict``) instead of tracked, and the last clean frame stays
-    the one a bridge keyframe may start from. After each frame the median depth of the map points it was
-    tracked with goes to ``feed`` (the next frame's warp depth). ``model`` gives each
-    image's :class:`ImageModel` from its fusion bias and warp depth."""
+    the one a bridge keyframe may start from. After each frame the median depth of the map
+    points it was tracked with goes to ``feed`` (the next frame's warp depth). ``model`` gives
+    each image's :class:`ImageModel` from its fusion bias and warp depth."""
     wall0 = time.perf_counter()
     t_first: int | None = None
     # (frame index, (left, right) features it was tracked with, their image model)

@@ -13,9 +13,9 @@ use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
-    bootstrap, bridge_keyframe, commit_tracked, last_pose, predict_only, reference_motion,
-    reinitialise, retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame,
-    TrackContext, TrackerState,
+    bootstrap, bridge_keyframe, commit_tracked, constant_velocity_prediction, last_pose,
+    predict_only, reference_motion, reference_pose, reinitialise, retrack_after_correction,
+    stereo_match, track_local_map, Bridge, StereoFrame, TrackContext, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -557,26 +557,14 @@ impl System {
             let mut map = write_lock(&shared.map);
             bootstrap(&mut map, &mut self.state, &frame, &ctx)
         } else {
-            let (tracked, previous, predicted, corrections, reference_pose) = {
+            let (tracked, previous, predicted, corrections, reference) = {
                 let map = read_lock(&shared.map);
-                let previous = last_pose(&map, &self.state);
-                let last_cam_from_world = previous.unwrap_or_else(Se3::identity).inverse();
-                let predicted = self.state.velocity * last_cam_from_world;
+                let (previous, predicted) = constant_velocity_prediction(&map, &self.state);
                 let tracked = shared.time("track_local_map", || {
                     track_local_map(&map, &self.state, &frame, &ctx, predicted)
                 });
-                let reference_pose = self
-                    .state
-                    .reference
-                    .and_then(|r| map.keyframes.get(&r))
-                    .map(|k| k.world_from_cam);
-                (
-                    tracked,
-                    previous,
-                    predicted,
-                    map.corrections,
-                    reference_pose,
-                )
+                let reference = reference_pose(&map, &self.state);
+                (tracked, previous, predicted, map.corrections, reference)
             };
             // After a loss the motion model is stale (the last pose is frames old): picking
             // the track up again from it needs the evidence a relocalisation needs, and the
@@ -605,8 +593,7 @@ impl System {
                     ) {
                         t = retracked;
                         previous = last;
-                    } else if let Some(moved) = reference_motion(&map, &self.state, reference_pose)
-                    {
+                    } else if let Some(moved) = reference_motion(&map, &self.state, reference) {
                         t.cam_from_world = t.cam_from_world * moved.inverse();
                         previous = last_pose(&map, &self.state);
                     }

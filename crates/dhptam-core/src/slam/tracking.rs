@@ -651,6 +651,24 @@ pub fn last_pose(map: &Map, state: &TrackerState) -> Option<Se3> {
     state.last.as_ref().and_then(|r| map.frame_pose(r))
 }
 
+/// The last frame's `world_from_cam` ([`last_pose`]) and the constant-velocity prediction of
+/// the next frame's `cam_from_world` from it (from the origin before any frame).
+pub fn constant_velocity_prediction(map: &Map, state: &TrackerState) -> (Option<Se3>, Se3) {
+    let last = last_pose(map, state);
+    (
+        last,
+        state.velocity * last.unwrap_or_else(Se3::identity).inverse(),
+    )
+}
+
+/// `world_from_cam` of the reference keyframe, `None` without one (or when it is gone).
+pub fn reference_pose(map: &Map, state: &TrackerState) -> Option<Se3> {
+    state
+        .reference
+        .and_then(|r| map.keyframes.get(&r))
+        .map(|k| k.world_from_cam)
+}
+
 /// How the reference keyframe moved since `then`, its `world_from_cam` when the frame was
 /// tracked: `now · then⁻¹`, the change of coordinates of the map around it (threaded mapping:
 /// a bundle adjustment may write back between the tracker's read of the map and its commit).
@@ -658,11 +676,7 @@ pub fn last_pose(map: &Map, state: &TrackerState) -> Option<Se3> {
 /// (`world_from_cam' = motion · world_from_cam`), so that stored relative to the moved
 /// keyframe it stays where it was measured. `None` when the keyframe did not move or is gone.
 pub fn reference_motion(map: &Map, state: &TrackerState, then: Option<Se3>) -> Option<Se3> {
-    let then = then?;
-    let now = state
-        .reference
-        .and_then(|r| map.keyframes.get(&r))?
-        .world_from_cam;
+    let (then, now) = (then?, reference_pose(map, state)?);
     (now != then).then(|| now * then.inverse())
 }
 
@@ -685,8 +699,7 @@ pub fn retrack_after_correction(
     if map.corrections == corrections {
         return None;
     }
-    let last = last_pose(map, state);
-    let predicted = state.velocity * last.unwrap_or_else(Se3::identity).inverse();
+    let (last, predicted) = constant_velocity_prediction(map, state);
     let tracked =
         track_local_map(map, state, frame, ctx, predicted).filter(|t| t.inliers >= needed);
     match &tracked {
