@@ -8,7 +8,8 @@ the bridge keyframes against new map segments; ``--flood both`` also runs ``fusi
 ``events`` with ``[fusion] flood_predict = false`` (flood frames tracked like any other),
 to measure the prediction across illumination floods; ``--flood-frames both`` also runs
 ``fusion`` with ``[fusion] flood_frames = false`` (every flood frame predicted, also those
-leaving a DVS-biased segment with good frames). Prints a Markdown table (with the bridges,
+leaving a DVS-biased segment with good frames, and the first clean frame after them blended
+with its events). Prints a Markdown table (with the bridges,
 new map segments and relocalisations of each run) and writes the runs under ``--out``.
 
     python benches/bench_accuracy_demo.py [--seeds 0,2] [--modes fusion,frames,events]

@@ -328,37 +328,43 @@ def test_bridge_images_blend_the_usable_frame_with_the_neighbours_beta(sequence)
     assert events.bridge_images(events.process(pair[0].index), events.process(pair[1].index)) is None
 
 
-def test_a_flood_frame_leaving_the_dvs_bias_is_rendered_from_its_frames(sequence) -> None:  # type: ignore[no-untyped-def]
-    """Issue 8: a flood frame whose last clean predecessor was DVS-biased and whose two frames
-    pass the exposure test is rendered from the frames alone (β 0, bias ``frames``) and is
-    tracked when it has ``[fusion] min_features`` features; every other flood frame is left as
-    it was and predicted, and clean frames are never touched."""
+def test_frames_leaving_the_dvs_bias_across_a_flood_are_rendered_from_their_frames(sequence) -> None:  # type: ignore[no-untyped-def]
+    """Issue 8: leaving a DVS-biased segment across a flood (the last clean frame was
+    DVS-biased), the flood frames and the first clean frame after them whose two frames pass
+    the exposure test are rendered from the frames alone (β 0, bias ``frames``). Such a flood
+    frame is tracked when it has ``[fusion] min_features`` features, the clean one always;
+    every other flood frame is left as it was and predicted, every other clean frame untouched.
+    """
     frontend = Frontend(sequence, "fusion", prefetch=0)
     no_frames = _core.Config.from_toml("[fusion]\nflood_frames = false")
     strict = Frontend(sequence, "fusion", no_frames, prefetch=0)
     previous = None
-    leaving = 0
+    leaving = {"flood": 0, "clean": 0}
     for k in range(len(frontend)):
         frame = frontend.process(k)
         rendered = frontend.across_flood(previous, frame)
         assert strict.across_flood(previous, frame) is frame
-        if frame.flood and previous is not None and previous.bias == "dvs" and frame.bias == "aps":
-            leaving += 1
+        across = previous is not None and (frame.flood or frame.index > previous.index + 1)
+        if across and previous.bias == "dvs" and (frame.bias, frame.bias_right) == ("aps", "aps"):
+            leaving["flood" if frame.flood else "clean"] += 1
             assert (rendered.bias, rendered.bias_right, rendered.beta_left, rendered.beta_right) == (
                 "frames", "frames", 0.0, 0.0,
             )  # fmt: skip
             assert np.array_equal(rendered.left, frame.frame_left)
             assert np.array_equal(rendered.right, frame.frame_right)
-            assert not np.array_equal(frame.left, frame.frame_left)  # the flood was blended in
-            assert not frontend.predicts(rendered, frontend.min_features)
-            assert frontend.predicts(rendered, frontend.min_features - 1)  # too few features
-            assert strict.predicts(frame, 10_000)
+            assert not np.array_equal(frame.left, frame.frame_left)  # the events were blended in
+            if frame.flood:
+                assert not frontend.predicts(rendered, frontend.min_features)
+                assert frontend.predicts(rendered, frontend.min_features - 1)  # too few features
+                assert strict.predicts(frame, 10_000)
+            else:
+                assert not frontend.predicts(rendered, 0)  # a clean frame is always tracked
         else:
             assert rendered is frame, k
             assert frontend.predicts(frame, 10_000) == frame.flood, k
         if not frame.flood:
-            previous = frame
-    assert leaving >= 1
+            previous = rendered
+    assert leaving["flood"] >= 1 and leaving["clean"] >= 1, leaving
     # Outside the fusion mode nothing is re-rendered.
     events = Frontend(sequence, "events", prefetch=0)
     flood = next(events.process(k) for k in range(len(events)) if events.process(k).flood)

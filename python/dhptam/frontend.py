@@ -25,9 +25,9 @@ one polarity, and its E3CT shows the sensor's threshold pattern instead of scene
 ``flood_history`` windows and one polarity's share at least ``flood_polarity``);
 :attr:`FrontendFrame.flood` carries the flag, the run then predicts the pose of that frame
 instead of tracking it (``flood_predict``) and :meth:`Frontend.bridge_images` spans the flood.
-A flood frame leaving a DVS-biased segment whose frames are fine is rendered from the frames
-alone and tracked (:meth:`Frontend.across_flood`, ``flood_frames``): the flood spoils the
-events, not the frames.
+Leaving a DVS-biased segment across a flood, the flood frames and the first clean frame
+whose frames are fine are rendered from the frames alone and tracked
+(:meth:`Frontend.across_flood`, ``flood_frames``): the flood spoils the events, not the frames.
 
 Depth of the warp plane: ``[fusion] plane_depth_m`` (default 0 = infinity, a rotation-only
 homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM on the first
@@ -751,17 +751,22 @@ class Frontend:
 
     def across_flood(self, previous: FrontendFrame | None, current: FrontendFrame) -> FrontendFrame:
         """``current`` as the run tracks it after ``previous``, the last frame that was not a
-        flood: a flood frame leaving a DVS-biased segment (``previous.bias == "dvs"``) whose
-        frames both pass the exposure test (APS-biased) is rendered from its frames alone (β =
-        0, bias ``frames``; ``[fusion] flood_frames``). Its events are the flood's threshold
-        pattern, its frames are fine, and leaving a DVS-biased segment across a flood there is
-        no bridge to render from them anyway (:meth:`bridge_images`). Entering one, the flood
-        frames stay predicted: the bridge needs the clean events of the last frame before them.
-        Any other frame is returned unchanged."""
+        flood: leaving a DVS-biased segment across a flood (``previous.bias == "dvs"``, and
+        ``current`` a flood frame or the first clean frame after the flood), a frame whose two
+        frames pass the exposure test (APS-biased) is rendered from its frames alone (β = 0,
+        bias ``frames``; ``[fusion] flood_frames``). A flood frame's events are the flood's
+        threshold pattern, and leaving a DVS-biased segment across a flood there is no bridge
+        (:meth:`bridge_images`): the map around the frame was built from event-dominated
+        keyframes and from the frames-only renderings before it, and the first clean frame,
+        blended with its events at the APS-biased β while the auto-exposure is still catching
+        up, matched it with a fifth of the inliers its frames alone give. Entering a DVS-biased
+        segment the flood frames stay predicted: the bridge needs the clean events of the last
+        frame before them. Any other frame is returned unchanged."""
         if (
             self.mode != "fusion"
-            or not (self.flood_predict and self.flood_frames and current.flood)
+            or not (self.flood_predict and self.flood_frames)
             or previous is None
+            or not (current.flood or current.index > previous.index + 1)
             or previous.bias != "dvs"
             or (current.bias, current.bias_right) != ("aps", "aps")
         ):

@@ -264,11 +264,13 @@ config_section! {
         /// next clean frame against the map; bridges at a fusion-mode switch span the flood.
         /// Off: flood frames are tracked like any other (still flagged in `frames.csv`).
         flood_predict: bool = true,
-        /// With `flood_predict`: a flood frame that leaves a DVS-biased segment (the last
-        /// clean frame was DVS-biased) while both its frames pass the exposure test is rendered
-        /// from its frames alone (β = 0, bias `frames`: its events are the flood's) and tracked
-        /// when at least `min_features` features are found on each; otherwise it is predicted
-        /// like any flood frame. Off: every flood frame is predicted.
+        /// With `flood_predict`, leaving a DVS-biased segment across a flood (the last clean
+        /// frame was DVS-biased): a flood frame whose two frames pass the exposure test is
+        /// rendered from its frames alone (β = 0, bias `frames`: its events are the flood's)
+        /// and tracked when at least `min_features` features are found on each, otherwise
+        /// predicted like any flood frame; the first clean frame after the flood, when its
+        /// frames pass, is rendered from them alone too. Off: every flood frame is predicted
+        /// and the first clean frame blended as usual.
         flood_frames: bool = true,
         /// Depth of the event→frame warp plane during `dhptam run` (issue 8): "plane" warps
         /// every frame through `plane_depth_m`; "tracked" warps frame k through a plane at
