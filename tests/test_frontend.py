@@ -379,8 +379,15 @@ def test_is_flood_needs_a_burst_of_one_polarity() -> None:
     assert is_flood(480_000, 1_000, history)  # a darkening ramp: OFF events only
     assert is_flood(480_000, 479_000, history)  # a brightening one: ON only
     assert not is_flood(480_000, 240_000, history)  # fast motion: as many ON as OFF
-    assert not is_flood(60_000, 0, history)  # one polarity but no burst (2x the median)
-    assert is_flood(90_000, 0, history, ratio=2.5) and not is_flood(90_000, 0, history, ratio=4.0)
+    # One polarity but no burst: OFF events at 2.4x their usual count (half the median).
+    assert not is_flood(36_000, 0, history)
+    assert is_flood(90_000, 0, history, ratio=2.5) and not is_flood(90_000, 0, history, ratio=7.0)
+    # The start of a darkening ramp as measured at TUM-VIE size (demo rig `tumvie`, frame 66 of
+    # the HDR sequence): 2.3x the median count, 82 % OFF. The OFF events alone are 3.8x their
+    # usual count; the whole window against the whole median would not have been a flood.
+    ramp = [2_700_000, 14_100_000, 14_400_000, 6_980_000] + [2_825_000] * 6
+    assert is_flood(6_603_633, 1_188_654, ramp)
+    assert not is_flood(6_603_633, 3_301_816, ramp)  # as many events, both polarities: motion
     assert not is_flood(480_000, 1_000, history, ratio=0.0)  # detection off
     assert not is_flood(480_000, 1_000, [])  # nothing to compare with (frame 0)
     # The median, not the mean: earlier floods in the history do not hide the next one.

@@ -21,8 +21,9 @@ and ``events`` (the warped E3CT intensity alone, β = 1).
 Illumination floods (``[fusion] flood_*``): a global lighting change makes every event pixel
 fire as the light ramps, so a window holds many times the usual event count, almost all of
 one polarity, and its E3CT shows the sensor's threshold pattern instead of scene edges.
-:func:`is_flood` flags such a window (count above ``flood_ratio`` × the median of the previous
-``flood_history`` windows and one polarity's share at least ``flood_polarity``);
+:func:`is_flood` flags such a window (one polarity's share at least ``flood_polarity`` and its
+count above ``flood_ratio`` × its usual count, half the median of the previous
+``flood_history`` windows);
 :attr:`FrontendFrame.flood` carries the flag, the run then predicts the pose of that frame
 instead of tracking it (``flood_predict``) and :meth:`Frontend.bridge_images` spans the flood.
 Leaving a DVS-biased segment across a flood, the flood frames and the first clean frame
@@ -109,9 +110,14 @@ def is_flood(
     """Whether an event window is an illumination flood (a global lighting change).
 
     ``count`` events of which ``on_count`` are ON; ``history`` the event counts of the
-    previous windows. A flood holds more than ``ratio`` times their median and at least a
-    ``polarity`` share of one polarity: a lighting ramp moves every pixel's log intensity the
-    same way, while scene motion (even fast, with many events) gives both polarities.
+    previous windows. A flood holds at least a ``polarity`` share of one polarity, and more
+    events of that polarity than ``ratio`` times its usual count, half the median of
+    ``history``: a lighting ramp moves every pixel's log intensity the same way and adds
+    events of one polarity only, while scene motion (even fast, with many events) gives both
+    polarities in about equal numbers. Comparing the dominant polarity with its own usual
+    count, rather than the whole window with the whole median, keeps the other polarity's
+    ordinary events from diluting the burst: the start of a ramp, 2.3 × the median count with
+    82 % OFF events on the TUM-VIE-size HDR sequence, is a flood (3.8 × the usual OFF count).
     ``ratio = 0`` or an empty history: never.
 
     >>> is_flood(480_000, 2_000, [30_000] * 10)
@@ -122,8 +128,9 @@ def is_flood(
     counts = np.asarray(history, np.float64)
     if ratio <= 0.0 or counts.size == 0 or count <= 0:
         return False
-    share_on = on_count / count
-    return bool(count > ratio * float(np.median(counts)) and max(share_on, 1.0 - share_on) >= polarity)
+    dominant = max(on_count, count - on_count)
+    usual = 0.5 * float(np.median(counts))
+    return bool(dominant > ratio * usual and dominant >= polarity * count)
 
 
 @dataclass(frozen=True)

@@ -248,14 +248,16 @@ config_section! {
         /// map stays one piece across the switch. Off: a switch that cannot be tracked
         /// starts a new map segment (`[tracking] reinitialise`).
         bridge: bool = true,
-        /// Illumination floods (issue 8): an event window holding more than `flood_ratio` times
-        /// the median event count of the previous `flood_history` windows, with at least
-        /// `flood_polarity` of its events of one polarity, is a global lighting change (every
-        /// pixel fires as the light ramps), not scene motion; its E3CT shows the sensor's
-        /// threshold pattern, not edges. 0 turns the detection off.
+        /// Illumination floods (issue 8): an event window with at least `flood_polarity` of its
+        /// events of one polarity, and more events of that polarity than `flood_ratio` times
+        /// its usual count (half the median event count of the previous `flood_history`
+        /// windows: scene motion gives both polarities alike), is a global lighting change
+        /// (every pixel fires as the light ramps), not scene motion; its E3CT shows the
+        /// sensor's threshold pattern, not edges. 0 turns the detection off.
         flood_ratio: f64 = 2.5,
-        /// Share of one polarity (ON or OFF) in a window, in (0.5, 1], above which a window
-        /// with a flood's event count is a flood (scene motion gives both polarities).
+        /// Share of one polarity (ON or OFF) in a window, in (0.5, 1], from which a window
+        /// whose dominant polarity bursts past `flood_ratio` is a flood (scene motion gives
+        /// both polarities).
         flood_polarity: f64 = 0.8,
         /// Previous windows whose median event count a window is compared with.
         flood_history: u32 = 10,
