@@ -763,10 +763,10 @@ class Frontend:
         frames pass the exposure test (APS-biased) is rendered from its frames alone (β = 0,
         bias ``frames``; ``[fusion] flood_frames``). A flood frame's events are the flood's
         threshold pattern, and leaving a DVS-biased segment across a flood there is no bridge
-        (:meth:`bridge_images`): the map around the frame was built from event-dominated
-        keyframes and from the frames-only renderings before it, and the first clean frame,
-        blended with its events at the APS-biased β while the auto-exposure is still catching
-        up, matched it with a fifth of the inliers its frames alone give. Entering a DVS-biased
+        (:meth:`bridge_images`); the first clean frame, blended with its events at the
+        APS-biased β while the auto-exposure is still catching up (a dark frame: mostly event
+        edges on a flat background), matched the map of the segment's event-dominated
+        keyframes with a fifth of the inliers its frames alone give. Entering a DVS-biased
         segment the flood frames stay predicted: the bridge needs the clean events of the last
         frame before them. Any other frame is returned unchanged."""
         if (
