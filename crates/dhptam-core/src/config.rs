@@ -227,7 +227,10 @@ config_section! {
         /// fusion to the DVS-biased mode.
         max_clipped_fraction: f64 = 0.5,
         /// A frame on which fewer features than this are detected switches the fusion to the
-        /// DVS-biased mode.
+        /// DVS-biased mode, when the caller counts them (`Frontend(feature_counter=...)`;
+        /// `dhptam run` counts none: docs/BENCHMARKS.md, "Checked, no change: the paper's
+        /// feature-count criterion in runs"). Also the least features on each image of a flood
+        /// frame leaving a DVS-biased segment for it to be tracked on its frames (`flood_frames`).
         min_features: u32 = 100,
         /// A frame that fails the exposure test (`max_clipped_fraction`) has its grey levels
         /// between the 1st and 99th percentile stretched over 0–255 before β is chosen and
