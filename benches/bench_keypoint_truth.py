@@ -69,18 +69,18 @@ def _true_points(fe: Any, sim: Any, camera: Any, index: int, pixels: np.ndarray)
 
 def _world_from_rect(fe: Any, truth: Any, index: int) -> np.ndarray:
     """True pose of the rectified left frame camera at frame ``index``'s fusion time."""
+    from dhptam._core import SE3
     from dhptam.eval.metrics import interpolate
 
     row, ok = interpolate(truth, np.asarray([fe.t_f_ns[index]], np.int64), max_gap_s=0.1)
     if not ok[0]:
         raise ValueError(f"no ground truth around frame {index}")
-    from dhptam._core import SE3
-
     world_from_cam = np.asarray(SE3.from_translation_quat_xyzw(row[0, :3], row[0, 3:]).matrix())
     return world_from_cam @ np.linalg.inv(np.asarray(fe.rect_from_cam.matrix()))
 
 
 def _project(k: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Pixels of (N, 3) points through the rectified intrinsics ``k``."""
     return np.c_[
         k[0, 0] * points[:, 0] / points[:, 2] + k[0, 2], k[1, 1] * points[:, 1] / points[:, 2] + k[1, 2]
     ]
@@ -90,11 +90,12 @@ def measure(sequence: Path, sim: Any, mode: str, features: str, step: int) -> di
     """The statistics of one sequence in one mode (see the module)."""
     from dhptam import _core
     from dhptam.datasets import load_tumvie
+    from dhptam.demo import GROUND_TRUTH
     from dhptam.eval import load_trajectory
     from dhptam.features import from_config, match
     from dhptam.frontend import Frontend
 
-    truth = load_trajectory(sequence / "groundtruth_frame_left.txt")
+    truth = load_trajectory(sequence / GROUND_TRUTH)
     errors: list[float] = []
     common: list[float] = []
     scatter: list[float] = []
@@ -107,16 +108,14 @@ def measure(sequence: Path, sim: Any, mode: str, features: str, step: int) -> di
             image_size=(int(fe.frame_rect.width), int(fe.frame_rect.height)),
         )
         k = fe.frame_rect.K
-        fb = float(k[0, 0] * fe.frame_rect.baseline_m)
+        focal_baseline = float(k[0, 0] * fe.frame_rect.baseline_m)
         camera = seq.calibration.cameras["frame_left"]
         for index in range(1, len(fe) - 1, step):
             a, b = fe.process(index), fe.process(index + 1)
             if a.bias != b.bias or a.flood or b.flood:
                 continue
-            (fa, fa_right), (fb_left, _) = (
-                extractor.extract(a.left, a.right),
-                extractor.extract(b.left, b.right),
-            )
+            fa, fa_right = extractor.extract(a.left, a.right)
+            fb_left, _ = extractor.extract(b.left, b.right)
             points = _true_points(fe, sim, camera, index, np.asarray(fa.keypoints, np.float64))
             # Stereo disparities of frame k against the truth.
             scale, offset = fe.event_disparity() if a.bias in ("dvs", "events") else (1.0, 0.0)
@@ -127,7 +126,7 @@ def measure(sequence: Path, sim: Any, mode: str, features: str, step: int) -> di
                 keep = (np.abs(pl[:, 1] - pr[:, 1]) <= ROW_BAND_PX) & (pl[:, 0] > pr[:, 0])
                 z = points[lr[keep, 0], 2]
                 measured = scale * (pl[keep, 0] - pr[keep, 0]) + offset
-                disparity.extend((measured - fb / z)[np.isfinite(z)].tolist())
+                disparity.extend((measured - focal_baseline / z)[np.isfinite(z)].tolist())
             # Frame k to frame k+1.
             ab, _ = match(fa, fb_left, ratio=0.9)
             if len(ab) == 0:
