@@ -11,9 +11,10 @@ puts them. For every ``--step``-th frame k of each sequence:
   match in k+1 is the localisation error of the pair (both keypoints' errors together, plus
   any wrong match). Per pair, the median displacement of the matches within 3 px is the part
   common to the whole image (it moves the pose) and the median distance to it the scatter.
-* **stereo**: left-right matches on the same rectified row (±2 px, positive disparity); the
-  disparity after the image's correction (``Frontend.event_disparity`` for event-dominated
-  images, as the tracker applies it) against the true one, ``f · b / z``.
+* **stereo**: left-right matches on the same rectified row (±2 px, positive disparity;
+  ``dhptam.viz.stereo_matches``); the disparity after the image's correction
+  (``Frontend.event_disparity`` for event-dominated images, as the tracker applies it)
+  against the true one, ``f · b / z``.
 
 Keypoints on depth edges (the true depth varying by more than 5 % in the 3×3 pixels around)
 are left out, since one depth cannot be assigned to them. The sequences are those of the
@@ -36,7 +37,6 @@ import numpy as np
 from _accuracy import choices, finish_table
 
 REPO = Path(__file__).resolve().parents[1]
-ROW_BAND_PX = 2.0
 EDGE_DEPTH_RATIO = 0.05
 COMMON_WITHIN_PX = 3.0
 
@@ -48,23 +48,20 @@ def _true_points(fe: Any, sim: Any, camera: Any, index: int, pixels: np.ndarray)
     rect_from_cam = np.asarray(fe.frame_rect.rect_left_from_left.matrix())
     rays = np.c_[(pixels[:, 0] - k[0, 2]) / k[0, 0], (pixels[:, 1] - k[1, 2]) / k[1, 1], np.ones(len(pixels))]
     rays_cam = rays @ rect_from_cam  # rect_from_cam⁻¹ · ray, row by row
-    raw = camera.project(rays_cam)
+    raw = np.asarray(camera.project(rays_cam), np.float64)
     depth = sim.render_depth(0, int(fe.t_f_ns[index]))
-    out = np.full((len(pixels), 3), np.nan)
     h, w = depth.shape
-    for i, (u, v) in enumerate(raw):
-        if not (np.isfinite(u) and np.isfinite(v)):
-            continue
-        x, y = round(float(u)), round(float(v))
-        if not (1 <= x < w - 1 and 1 <= y < h - 1):
-            continue
-        patch = depth[y - 1 : y + 2, x - 1 : x + 2]
-        if not np.isfinite(patch).all() or patch.min() <= 0:
-            continue
-        if patch.max() - patch.min() > EDGE_DEPTH_RATIO * patch.min():
-            continue
-        out[i] = rect_from_cam @ (rays_cam[i] * depth[y, x] / rays_cam[i, 2])
-    return out
+    xy = np.where(np.isfinite(raw), np.round(raw), -1.0).astype(np.int64)
+    x, y = xy[:, 0], xy[:, 1]
+    inside = (x >= 1) & (x < w - 1) & (y >= 1) & (y < h - 1)
+    x, y = np.where(inside, x, 1), np.where(inside, y, 1)
+    # The 3×3 depths around each pixel: one surface (not an edge), seen (finite, positive).
+    patch = np.stack([depth[y + dy, x + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=1)
+    with np.errstate(invalid="ignore"):
+        low, high = patch.min(axis=1), patch.max(axis=1)
+        ok = inside & np.isfinite(patch).all(axis=1) & (low > 0) & (high - low <= EDGE_DEPTH_RATIO * low)
+        points = (rays_cam * (depth[y, x] / rays_cam[:, 2])[:, None]) @ rect_from_cam.T
+    return np.where(ok[:, None], points, np.nan)
 
 
 def _world_from_rect(fe: Any, truth: Any, index: int) -> np.ndarray:
@@ -94,6 +91,7 @@ def measure(sequence: Path, sim: Any, mode: str, features: str, step: int) -> di
     from dhptam.eval import load_trajectory
     from dhptam.features import from_config, match
     from dhptam.frontend import Frontend
+    from dhptam.viz import stereo_matches
 
     truth = load_trajectory(sequence / GROUND_TRUTH)
     errors: list[float] = []
@@ -119,13 +117,12 @@ def measure(sequence: Path, sim: Any, mode: str, features: str, step: int) -> di
             points = _true_points(fe, sim, camera, index, np.asarray(fa.keypoints, np.float64))
             # Stereo disparities of frame k against the truth.
             scale, offset = fe.event_disparity() if a.bias in ("dvs", "events") else (1.0, 0.0)
-            lr, _ = match(fa, fa_right, ratio=0.9)
+            lr = stereo_matches(fa, fa_right, ratio=0.9, limit=None)
             if len(lr):
                 pl = np.asarray(fa.keypoints, np.float64)[lr[:, 0]]
                 pr = np.asarray(fa_right.keypoints, np.float64)[lr[:, 1]]
-                keep = (np.abs(pl[:, 1] - pr[:, 1]) <= ROW_BAND_PX) & (pl[:, 0] > pr[:, 0])
-                z = points[lr[keep, 0], 2]
-                measured = scale * (pl[keep, 0] - pr[keep, 0]) + offset
+                z = points[lr[:, 0], 2]
+                measured = scale * (pl[:, 0] - pr[:, 0]) + offset
                 disparity.extend((measured - focal_baseline / z)[np.isfinite(z)].tolist())
             # Frame k to frame k+1.
             ab, _ = match(fa, fb_left, ratio=0.9)

@@ -104,22 +104,25 @@ def _e3ct_rgb(events: npt.NDArray[np.float32]) -> npt.NDArray[np.uint8]:
     return (np.clip(rgb, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
-def stereo_matches(left: Any, right: Any) -> npt.NDArray[np.int64]:
-    """Pairs (row in left, row in right) of descriptor matches that lie on the same rectified
-    row (±2 px) with a positive disparity, nearest rows first (at most 300)."""
+def stereo_matches(
+    left: Any, right: Any, *, ratio: float = 0.8, limit: int | None = _MAX_MATCHES_DRAWN
+) -> npt.NDArray[np.int64]:
+    """Pairs (row in left, row in right) of descriptor matches (:func:`dhptam.features.match`
+    with ``ratio``) that lie on the same rectified row (±2 px) with a positive disparity,
+    nearest rows first (at most ``limit``; ``None``: all)."""
     from .features import match
 
     kl, kr = np.asarray(left.keypoints), np.asarray(right.keypoints)
     if len(kl) == 0 or len(kr) == 0:
         return np.empty((0, 2), np.int64)
-    pairs, _ = match(left, right)
+    pairs, _ = match(left, right, ratio=ratio)
     if len(pairs) == 0:
         return pairs
     a, b = kl[pairs[:, 0]], kr[pairs[:, 1]]
     dy = np.abs(a[:, 1] - b[:, 1])
     keep = (dy <= _ROW_TOLERANCE_PX) & (a[:, 0] - b[:, 0] > 0)
     pairs, dy = pairs[keep], dy[keep]
-    return pairs[np.argsort(dy, kind="stable")[:_MAX_MATCHES_DRAWN]]
+    return pairs[np.argsort(dy, kind="stable")[:limit]]
 
 
 def align_positions(source: _F64, target: _F64) -> tuple[_F64, _F64]:
