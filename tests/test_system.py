@@ -54,6 +54,25 @@ def test_tracks_every_frame_with_noise_and_outliers() -> None:
     assert timing["fusion"]["count"] == created
 
 
+def test_written_trajectory_is_smoothed_by_each_frames_covariance() -> None:
+    # 1.5 px keypoint noise: the tracked centres scatter; the smoother ([tracking] smoothing_q,
+    # on by default) pulls them onto a smooth motion, orientations untouched.
+    frames = generate(frames=120, turns=0.25, landmarks=1500, pixel_noise=1.5, seed=3)
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames])
+    system = run(frames)
+    t, smoothed = system.trajectory()
+    t_raw, tracked = system.trajectory(smoothed=False)
+    assert t.tolist() == t_raw.tolist() == [f.t_ns for f in frames]
+    np.testing.assert_array_equal(smoothed[:, :3, :3], tracked[:, :3, :3])
+    e_smoothed, e_tracked = ate(smoothed[:, :3, 3], truth), ate(tracked[:, :3, 3], truth)
+    assert e_smoothed < 0.8 * e_tracked, (e_smoothed, e_tracked)
+    # Off: the written trajectory is the tracked one.
+    off = run(frames, dhptam.Config.from_toml("[tracking]\nsmoothing_q = 0"))
+    np.testing.assert_array_equal(off.trajectory()[1], off.trajectory(smoothed=False)[1])
+    with pytest.raises(dhptam.ConfigError, match="smoothing_q"):
+        dhptam.Config.from_toml("[tracking]\nsmoothing_q = -1")
+
+
 def test_binary_descriptors_track() -> None:
     frames = generate(frames=60, turns=0.15, binary=True, seed=2)
     system = run(frames)

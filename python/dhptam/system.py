@@ -192,9 +192,12 @@ class System:
         :meth:`predict` leaves it unchanged."""
         return self._core.tracked_depth()
 
-    def trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-        """(t_ns (N,), poses (N, 4, 4)) of every tracked frame, with the latest corrections."""
-        return self._core.trajectory()
+    def trajectory(self, smoothed: bool = True) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """(t_ns (N,), poses (N, 4, 4)) of every tracked frame, with the latest corrections;
+        with ``[tracking] smoothing_q`` > 0 and ``smoothed`` the camera centres are those of
+        the trajectory smoother (each frame weighted by its own measured covariance), else
+        as tracked."""
+        return self._core.trajectory(smoothed)
 
     def keyframe_trajectory(self) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """(t_ns (K,), poses (K, 4, 4)) of the keyframes."""

@@ -392,6 +392,14 @@ config_section! {
         /// ("unit": σ = this factor on those frames); applied by the Python front-end
         /// (`dhptam.run`). 1 (default: 1.4 did not help on the HDR demo) leaves σ as it is.
         dvs_sigma_scale: f64 = 1.0,
+        /// Acceleration-noise spectral density q, m²/s³, of the smoother that re-estimates
+        /// the written trajectory's camera centres from every tracked frame, each weighted by
+        /// the covariance of its own pose refinement (`slam::smoothing`, docs/ARCHITECTURE.md);
+        /// 0 writes the centres as tracked. Tracking itself never sees the smoothed poses.
+        /// Default 0.03: 0.003 already bends the fast shaking of the `6dof` preset, 0.01–0.03
+        /// help every simulated sequence in `fusion` and `frames` (docs/BENCHMARKS.md, "The
+        /// trajectory smoother").
+        smoothing_q: f64 = 0.03,
     }
 }
 
@@ -534,6 +542,12 @@ impl TrackingConfig {
         ] {
             check(key, v.is_finite() && v > 0.0, "a positive number", v)?;
         }
+        check(
+            "tracking.smoothing_q",
+            self.smoothing_q.is_finite() && self.smoothing_q >= 0.0,
+            "a non-negative number (0: off)",
+            self.smoothing_q,
+        )?;
         check(
             "tracking.keypoint_sigma",
             ["octave", "unit"].contains(&self.keypoint_sigma.as_str()),

@@ -313,6 +313,7 @@ fn a_frame_tracked_before_a_loop_correction_is_tracked_again_after_it() {
         keyframe: kf,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        position_cov: None,
     };
     let state = TrackerState {
         last: Some(record),
@@ -1124,4 +1125,68 @@ fn picking_the_track_up_after_a_loss_needs_relocalisation_evidence() {
         error(&next, &frames[43])
     );
     assert_eq!(system.tracking_totals().relocalisations, 1);
+}
+
+/// Runs a synthetic quarter circle with keypoint noise `pixel_noise` (smoother at `q`);
+/// returns the system, the true centres and the mean trace of the measured covariances.
+fn run_noisy(pixel_noise: f64, q: f64) -> (System, Vec<Vector3<f64>>, f64) {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 120,
+        turns: 0.25,
+        pixel_noise,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let mut config = Config::default();
+    config.tracking.smoothing_q = q;
+    let mut system = System::new(o.calib, config, false).unwrap();
+    for f in &frames {
+        track(&mut system, f);
+    }
+    let truth = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    let traces: Vec<f64> = system.with_map(|map| {
+        map.trajectory
+            .iter()
+            .filter_map(|r| r.position_cov.map(|c| c.trace()))
+            .collect()
+    });
+    assert!(
+        traces.len() > 100,
+        "{} frames with a covariance",
+        traces.len()
+    );
+    let mean = traces.iter().sum::<f64>() / traces.len() as f64;
+    (system, truth, mean)
+}
+
+#[test]
+fn the_smoother_weighs_each_frame_by_its_measured_covariance() {
+    // Noisy keypoints (1.5 px): tracked centres scatter by millimetres from frame to frame.
+    let (system, truth, noisy_trace) = run_noisy(1.5, 0.01);
+    let tracked = system.tracked_trajectory();
+    let smoothed = system.trajectory();
+    assert_eq!(tracked.len(), truth.len());
+    assert_eq!(smoothed.len(), truth.len());
+    // Orientations and times are untouched; only centres move.
+    for (a, b) in tracked.iter().zip(&smoothed) {
+        assert_eq!(a.0, b.0);
+        assert!((a.1.rotation.inverse() * b.1.rotation).angle() < 1e-12);
+    }
+    let (e_tracked, e_smoothed) = (
+        ate(&positions(&tracked), &truth),
+        ate(&positions(&smoothed), &truth),
+    );
+    eprintln!("ATE tracked {e_tracked:.5} m, smoothed {e_smoothed:.5} m");
+    assert!(e_smoothed < 0.8 * e_tracked, "{e_smoothed} vs {e_tracked}");
+    // The covariance follows the keypoints' real scatter (s² from the residuals), not their
+    // nominal σ (1 px for every keypoint here): three times the noise, about nine times
+    // the variance.
+    let (_, _, quiet_trace) = run_noisy(0.5, 0.01);
+    let ratio = noisy_trace / quiet_trace;
+    eprintln!("covariance trace 1.5 px / 0.5 px: {ratio:.2}");
+    assert!((5.0..16.0).contains(&ratio), "trace ratio {ratio}");
 }

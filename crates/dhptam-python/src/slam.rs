@@ -268,12 +268,23 @@ impl PySystem {
         self.with(|s| s.tracked_depth())
     }
 
-    /// (t_ns (N,) int64, poses (N, 4, 4) world_from_cam) of every tracked frame.
+    /// (t_ns (N,) int64, poses (N, 4, 4) world_from_cam) of every tracked frame; `smoothed`:
+    /// the centres of the trajectory smoother when `[tracking] smoothing_q` > 0.
+    #[pyo3(signature = (smoothed = true))]
     fn trajectory<'py>(
         &self,
         py: Python<'py>,
+        smoothed: bool,
     ) -> PyResult<(Bound<'py, PyArray1<i64>>, Bound<'py, PyArray3<f64>>)> {
-        let poses = py.detach_guarded("slam::trajectory", || self.with(|s| s.trajectory()))?;
+        let poses = py.detach_guarded("slam::trajectory", || {
+            self.with(|s| {
+                if smoothed {
+                    s.trajectory()
+                } else {
+                    s.tracked_trajectory()
+                }
+            })
+        })?;
         Ok(poses_arrays(py, &poses))
     }
 

@@ -6,8 +6,9 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
+use crate::error::Result;
 use crate::geometry::Se3;
 use crate::matching::{distance, OwnedDescriptor, OwnedDescriptors};
 
@@ -83,6 +84,11 @@ pub struct FrameRecord {
     /// Whether the pose is a motion-model prediction without a measurement
     /// ([`super::tracking::predict_only`]); see [`Map::trajectory_poses`].
     pub predicted: bool,
+    /// Covariance of the camera centre as the tracker measured it against the map, m², in
+    /// the frame's own camera axes (the translation block of [`crate::solver::PoseResult`]'s
+    /// covariance); `None` where no refinement placed the frame (map starts, predictions,
+    /// bridges). Weighs the frame in the trajectory smoother ([`super::smoothing`]).
+    pub position_cov: Option<Matrix3<f64>>,
 }
 
 /// Where a fused map point went ([`Map::replaced`]).
@@ -140,6 +146,77 @@ impl Map {
     /// those two measured poses, by time: once the frame after the run is measured, the
     /// interpolation uses both sides, where the prediction made while tracking extrapolated
     /// from one. A predicted run with no measured record after it keeps its predictions.
+    /// [`Map::trajectory_poses`] with the camera centres of each map segment re-estimated by
+    /// the trajectory smoother ([`super::smoothing`], acceleration-noise density `q`, m²/s³):
+    /// each measured frame weighted by its [`FrameRecord::position_cov`] (a measured frame
+    /// without one, such as a segment's first, by the segment's median covariance), predicted
+    /// frames placed by the motion prior. Orientations are those of `trajectory_poses`.
+    pub fn smoothed_trajectory_poses(&self, q: f64) -> Result<Vec<(i64, Se3)>> {
+        let records: Vec<&FrameRecord> = self
+            .trajectory
+            .iter()
+            .filter(|r| self.keyframes.contains_key(&r.keyframe))
+            .collect();
+        let mut poses = self.trajectory_poses();
+        let mut start = 0;
+        while start < poses.len() {
+            let segment = self.segment_of(records[start].keyframe);
+            let end = (start..poses.len())
+                .find(|&j| self.segment_of(records[j].keyframe) != segment)
+                .unwrap_or(poses.len());
+            self.smooth_segment(&records[start..end], &mut poses[start..end], q)?;
+            start = end;
+        }
+        Ok(poses)
+    }
+
+    /// Smooths the centres of one segment's `poses` (with their `records`) in place.
+    fn smooth_segment(
+        &self,
+        records: &[&FrameRecord],
+        poses: &mut [(i64, Se3)],
+        q: f64,
+    ) -> Result<()> {
+        let mut measured: Vec<Matrix3<f64>> =
+            records.iter().filter_map(|r| r.position_cov).collect();
+        if measured.len() < 2 {
+            return Ok(());
+        }
+        measured.sort_by(|a, b| a.trace().total_cmp(&b.trace()));
+        let fallback = measured[measured.len() / 2];
+        // Frames sharing a timestamp (a bridge keyframe) are one sample; each keeps its own
+        // offset from the first of them.
+        let mut samples: Vec<super::smoothing::CentreSample> = Vec::with_capacity(poses.len());
+        let mut sample_of = Vec::with_capacity(poses.len());
+        for (r, (t_ns, pose)) in records.iter().zip(poses.iter()) {
+            let t_s = *t_ns as f64 * 1e-9;
+            if samples.last().is_some_and(|s| s.t_s >= t_s) {
+                sample_of.push(samples.len() - 1);
+                continue;
+            }
+            let information = if r.predicted {
+                None
+            } else {
+                // Σ_c = R Σ_ρ Rᵀ with R the camera's orientation in the world.
+                let rot = pose.rotation.matrix();
+                let cov = rot * r.position_cov.unwrap_or(fallback) * rot.transpose();
+                cov.try_inverse()
+                    .filter(|m| m.iter().all(|x| x.is_finite()))
+            };
+            sample_of.push(samples.len());
+            samples.push(super::smoothing::CentreSample {
+                t_s,
+                centre: pose.translation,
+                information,
+            });
+        }
+        let smoothed = super::smoothing::smooth_centres(&samples, q)?;
+        for ((_, pose), &k) in poses.iter_mut().zip(&sample_of) {
+            pose.translation += smoothed[k] - samples[k].centre;
+        }
+        Ok(())
+    }
+
     pub fn trajectory_poses(&self) -> Vec<(i64, Se3)> {
         let poses: Vec<(&FrameRecord, Se3)> = self
             .trajectory

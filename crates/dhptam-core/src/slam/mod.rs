@@ -13,6 +13,7 @@ pub mod loop_closing;
 pub mod map;
 pub mod mapping;
 pub mod persist;
+pub mod smoothing;
 pub mod synthetic;
 pub mod system;
 pub mod tracking;

@@ -1,11 +1,13 @@
 //! Saving and loading a map with the tracker state: a little-endian binary file.
 //!
-//! Layout: the magic `DHPTAMAP`, a `u32` version (4), the calibration, the descriptor kind
+//! Layout: the magic `DHPTAMAP`, a `u32` version (5), the calibration, the descriptor kind
 //! and width, the tracker state, the id counters, the keyframes (per keypoint x, y, u_right
 //! and, since version 3, its σ), the map points, the loops, the trajectory (since version 4
-//! with a predicted flag per record) and (since version 2) the first keyframes of unjoined
+//! with a predicted flag per record, since version 5 with the camera centre's covariance when
+//! the tracker measured one: a flag and the upper triangle, 6 × f64) and (since version 2) the first keyframes of unjoined
 //! map segments. Version-1 files (no segment list), version-2 files (no σ: 1 px each) and
-//! version-3 files (no predicted flags: every record measured) are still read. Poses are stored as
+//! version-3 files (no predicted flags: every record measured) and version-4 files (no
+//! covariances) are still read. Poses are stored as
 //! translation (3 × f64) and quaternion x-y-z-w (4 × f64) of `world_from_cam` /
 //! `kf_from_cam`. The file is written to `<path>.tmp` and
 //! renamed, so a crash never leaves a truncated map under the final name.
@@ -14,7 +16,7 @@ use std::collections::BTreeMap;
 use std::io::{BufWriter, Read, Write};
 use std::path::Path;
 
-use nalgebra::Vector3;
+use nalgebra::{Matrix3, Vector3};
 
 use super::map::{FrameRecord, Keyframe, Map, MapPoint};
 use super::tracking::TrackerState;
@@ -24,7 +26,10 @@ use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors, OwnedDescriptors};
 
 const MAGIC: &[u8; 8] = b"DHPTAMAP";
-const VERSION: u32 = 4;
+const VERSION: u32 = 5;
+
+/// The stored entries (row, column) of a symmetric 3×3 covariance: its upper triangle.
+const COV_ENTRIES: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
 
 struct Writer(Vec<u8>);
 
@@ -252,6 +257,15 @@ pub(crate) fn save(
         w.u64(r.keyframe);
         w.se3(&r.kf_from_cam);
         w.u8(r.predicted as u8);
+        match &r.position_cov {
+            Some(c) => {
+                w.u8(1);
+                for (i, j) in COV_ENTRIES {
+                    w.f64(c[(i, j)]);
+                }
+            }
+            None => w.u8(0),
+        }
     }
     w.u64(map.segment_starts.len() as u64);
     for s in &map.segment_starts {
@@ -342,6 +356,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
             keyframe: r.u64()?,
             kf_from_cam: r.se3()?,
             predicted: false,
+            position_cov: None,
         })
     } else {
         None
@@ -447,6 +462,17 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
             keyframe: r.u64()?,
             kf_from_cam: r.se3()?,
             predicted: version >= 4 && r.u8()? != 0,
+            position_cov: if version >= 5 && r.u8()? != 0 {
+                let mut c = Matrix3::zeros();
+                for (i, j) in COV_ENTRIES {
+                    let v = r.f64()?;
+                    c[(i, j)] = v;
+                    c[(j, i)] = v;
+                }
+                Some(c)
+            } else {
+                None
+            },
         });
     }
     if version >= 2 {

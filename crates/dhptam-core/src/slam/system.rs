@@ -832,7 +832,23 @@ impl System {
 
     /// Timestamps and `world_from_cam` of every tracked frame, in order; predicted frames
     /// between two measured ones are interpolated between them ([`Map::trajectory_poses`]).
+    /// With `[tracking] smoothing_q` > 0 the camera centres are those of the trajectory
+    /// smoother ([`Map::smoothed_trajectory_poses`]); [`System::tracked_trajectory`] gives
+    /// them as tracked.
     pub fn trajectory(&self) -> Vec<(i64, Se3)> {
+        let q = self.shared.config.tracking.smoothing_q;
+        let map = read_lock(&self.shared.map);
+        if q > 0.0 {
+            match map.smoothed_trajectory_poses(q) {
+                Ok(poses) => return poses,
+                Err(e) => log::warn!("trajectory smoother failed ({e}); writing the tracked poses"),
+            }
+        }
+        map.trajectory_poses()
+    }
+
+    /// [`System::trajectory`] without the smoother: every frame's centre as tracked.
+    pub fn tracked_trajectory(&self) -> Vec<(i64, Se3)> {
         read_lock(&self.shared.map).trajectory_poses()
     }
 

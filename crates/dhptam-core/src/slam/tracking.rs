@@ -309,6 +309,8 @@ pub struct Tracked {
     pub matches: Vec<Option<u64>>,
     /// Number of inliers.
     pub inliers: usize,
+    /// Covariance of the last refinement ([`crate::solver::PoseResult::covariance`]).
+    pub covariance: Option<nalgebra::Matrix6<f64>>,
 }
 
 /// Observations for refinement from keypoint → point matches, with their σ and keypoint
@@ -370,6 +372,7 @@ pub fn refine_matches(
 ) -> Option<Tracked> {
     let k = calib.intrinsics();
     let mut pose = predicted;
+    let mut covariance = None;
     for _ in 0..2 {
         let (obs, sigmas, which) = observations(map, frame, &matches);
         if obs.len() < 6 {
@@ -384,6 +387,7 @@ pub fn refine_matches(
             }
         };
         pose = r.cam_from_world;
+        covariance = r.covariance;
         for (k, &i) in which.iter().enumerate() {
             if !r.inliers[k] {
                 matches[i] = None;
@@ -395,6 +399,7 @@ pub fn refine_matches(
         cam_from_world: pose,
         matches,
         inliers,
+        covariance,
     })
 }
 
@@ -542,6 +547,7 @@ pub fn bootstrap(
         keyframe: id,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        position_cov: None,
     };
     map.trajectory.push(record);
     *state = TrackerState {
@@ -585,6 +591,7 @@ pub fn reinitialise(
         keyframe: id,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        position_cov: None,
     };
     map.trajectory.push(record);
     state.last = Some(record);
@@ -777,6 +784,9 @@ pub fn commit_tracked(
             keyframe: kf.id,
             kf_from_cam: kf.world_from_cam.inverse() * world_from_cam,
             predicted: false,
+            position_cov: tracked
+                .covariance
+                .map(|c| c.fixed_view::<3, 3>(0, 0).into_owned()),
         });
     if let Some(record) = record {
         map.trajectory.push(record);
@@ -846,6 +856,7 @@ pub fn predict_only(
         keyframe: reference.id,
         kf_from_cam: reference.world_from_cam.inverse() * world_from_cam,
         predicted: true,
+        position_cov: None,
     };
     map.trajectory.push(record);
     state.last = Some(record);
@@ -943,6 +954,7 @@ pub fn bridge_keyframe(
         keyframe: id,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        position_cov: None,
     };
     state.measured = Some(record);
     state.last = Some(if last.t_ns == primary.t_ns {
@@ -953,6 +965,7 @@ pub fn bridge_keyframe(
             keyframe: id,
             kf_from_cam: world_from_cam.inverse() * last_world_from_cam,
             predicted: last.predicted,
+            position_cov: None,
         }
     });
     state.reference = Some(id);

@@ -102,6 +102,12 @@ pub struct PoseResult {
     pub inlier_count: usize,
     /// RMS pixel error over the inliers (0 when there are none).
     pub inlier_rms: f64,
+    /// Covariance of the pose update δ = [ρ, φ] at the result (`cam_from_world` perturbed on
+    /// the left, ρ in metres and φ in radians, both in the camera's axes): `s² (JᵀJ)⁻¹` over
+    /// the inliers' whitened residuals, with `s² = Σ ‖r‖² / (m − 6)` over their `m` scalar
+    /// residuals, so the keypoints' real scatter sets it rather than their nominal σ.
+    /// `None` with fewer than seven scalar residuals or a singular `JᵀJ`.
+    pub covariance: Option<Matrix6<f64>>,
 }
 
 /// Residual (predicted − measured) of one observation with its 3×6 Jacobian (rows beyond the
@@ -351,12 +357,18 @@ fn solve(
     let pose = problem.pose;
     let mut inliers = Vec::with_capacity(observations.len());
     let (mut sum, mut count) = (0.0, 0usize);
+    // The inliers' information JᵀJ and whitened squared error, for the covariance.
+    let (mut h, mut chi2, mut m) = (Matrix6::<f64>::zeros(), 0.0, 0usize);
     for (i, o) in observations.iter().enumerate() {
         let ok = match pose_residual(k, &pose, o, options.min_depth) {
-            Some((r, _, dim))
+            Some((r, j, dim))
                 if r.norm_squared() * problem.weight_sq(i) <= options.outlier_threshold_sq =>
             {
                 sum += r.norm_squared() / dim as f64;
+                let w2 = problem.weight_sq(i);
+                h.gemm_tr(w2, &j, &j, 1.0);
+                chi2 += r.norm_squared() * w2;
+                m += dim;
                 true
             }
             _ => false,
@@ -364,6 +376,13 @@ fn solve(
         count += ok as usize;
         inliers.push(ok);
     }
+    let covariance = if m > 6 {
+        h.cholesky()
+            .map(|c| c.inverse() * (chi2 / (m - 6) as f64))
+            .filter(|c| c.iter().all(|x| x.is_finite()))
+    } else {
+        None
+    };
     Ok(PoseResult {
         cam_from_world: pose,
         report,
@@ -374,5 +393,6 @@ fn solve(
         } else {
             0.0
         },
+        covariance,
     })
 }
