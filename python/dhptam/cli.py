@@ -327,7 +327,8 @@ def _add_run_command(sub: Any) -> None:
         description=(
             "Run dhptam on a sequence: front-end (events, E3CT, fusion), features, tracking, "
             "mapping and loop closing. Writes OUT/trajectory.tum (every frame, left rectified "
-            "frame camera), trajectory_frame_left.tum, keyframes.tum, map.ply, frames.csv, "
+            "frame camera; centres smoothed by each frame's measured covariance, see [tracking] "
+            "smoothing_q), trajectory_frame_left.tum, keyframes.tum, map.ply, frames.csv, "
             "timing.json, config.toml and run.log. Ctrl-C stops cleanly and keeps what was done."
         ),
     )

@@ -88,6 +88,15 @@ fn save_load_continue_gives_the_same_poses() {
         let d = (r.world_from_cam.inverse() * e.world_from_cam).log().norm();
         assert!(d < 1e-9, "frame {}: poses differ by {d}", f.t_ns);
     }
+    // The covariances are saved too: the smoothed trajectory (which weighs every frame by its
+    // own) is the uninterrupted run's, the first 30 frames included.
+    let (a, b) = (reference.trajectory(), second.trajectory());
+    assert_eq!(a.len(), b.len());
+    for ((ta, pa), (tb, pb)) in a.iter().zip(&b) {
+        assert_eq!(ta, tb);
+        let d = (pa.translation - pb.translation).norm();
+        assert!(d < 1e-9, "frame {ta}: smoothed centres differ by {d}");
+    }
     // A truncated file is refused with its name.
     let bytes = std::fs::read(&path).unwrap();
     std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
