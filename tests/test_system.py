@@ -329,7 +329,9 @@ def test_bridge_is_refused_unless_it_is_the_last_tracked_frame() -> None:
 def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone(tmp_path: Path) -> None:
     frames = generate(frames=120, seed=1)
     truth = np.array([f.world_from_cam[:3, 3] for f in frames])
-    system = dhptam.System(CALIB, None, threaded=False)
+    # The placement of predicted frames as tracked: the trajectory smoother off.
+    unsmoothed = dhptam.Config.from_toml("[tracking]\nsmoothing_q = 0")
+    system = dhptam.System(CALIB, unsmoothed, threaded=False)
     first = system.predict(frames[0].t_ns)
     assert first.state == "lost" and len(system.trajectory()[0]) == 0  # nothing to predict from
     for f in frames[:60]:
@@ -362,24 +364,30 @@ def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone(tmp_pat
         s = (t[k] - t[59]) / (t[63] - t[59])
         assert np.allclose(poses[k], poses[59] @ SE3.exp(s * between).matrix(), atol=1e-9), k
     assert not np.allclose(poses[62], predicted[2].pose, atol=1e-6)
-    # The predicted flags travel through a saved map (format version 4) ...
+    # The predicted flags travel through a saved map (format version 5) ...
     system.save_map(tmp_path / "map.bin")
-    loaded = dhptam.System(CALIB, None, threaded=False)
+    loaded = dhptam.System(CALIB, unsmoothed, threaded=False)
     loaded.load_map(tmp_path / "map.bin")
     assert np.allclose(loaded.trajectory()[1], poses, atol=1e-12)
     # ... and a version-3 map (the same file without them) reads every record as measured:
     # the stored predictions come back (moved with their keyframe by bundle adjustment since
-    # they were made, by under a millimetre here). A record is t (8), keyframe (8), pose (56), flag (1);
-    # after the records come the segment-start count and ids (none here).
+    # they were made, by under a millimetre here). A record is t (8), keyframe (8), pose (56),
+    # the predicted flag (1), the covariance flag (1) and, when set, the covariance's upper
+    # triangle (48); the records follow their count, the segment-start count and ids (none
+    # here) follow them.
     data = bytearray((tmp_path / "map.bin").read_bytes())
     n = len(t)
-    assert int.from_bytes(data[8:12], "little") == 4 and data[-8:] == bytes(8)
-    start = len(data) - 8 - 73 * n
-    assert int.from_bytes(data[start - 8 : start], "little") == n
-    records = b"".join(data[start + 73 * i : start + 73 * i + 72] for i in range(n))
-    v3 = data[:8] + (3).to_bytes(4, "little") + data[12:start] + records + data[-8:]
+    assert int.from_bytes(data[8:12], "little") == 5 and data[-8:] == bytes(8)
+    start = data.index(n.to_bytes(8, "little") + int(t[0]).to_bytes(8, "little")) + 8
+    records, at, with_covariance = [], start, 0
+    for _ in range(n):
+        records.append(bytes(data[at : at + 72]))
+        with_covariance += data[at + 73]
+        at += 74 + 48 * data[at + 73]
+    assert at == len(data) - 8 and with_covariance > n // 2, (at, len(data), with_covariance)
+    v3 = data[:8] + (3).to_bytes(4, "little") + data[12:start] + b"".join(records) + data[-8:]
     (tmp_path / "v3.bin").write_bytes(bytes(v3))
-    old = dhptam.System(CALIB, None, threaded=False)
+    old = dhptam.System(CALIB, unsmoothed, threaded=False)
     old.load_map(tmp_path / "v3.bin")
     old_poses = old.trajectory()[1]
     assert np.allclose(old_poses[60:63], [r.pose for r in predicted], atol=2e-3)
