@@ -86,8 +86,8 @@ pub struct FrameRecord {
     pub predicted: bool,
     /// Covariance of the camera centre as the tracker measured it against the map, m², in
     /// the frame's own camera axes (the translation block of [`crate::solver::PoseResult`]'s
-    /// covariance); `None` where no refinement placed the frame (map starts, predictions,
-    /// bridges). Weighs the frame in the trajectory smoother ([`super::smoothing`]).
+    /// covariance); `None` where no refinement placed the frame (the first frame of a map
+    /// segment, predictions). Weighs the frame in the trajectory smoother ([`super::smoothing`]).
     pub position_cov: Option<Matrix3<f64>>,
 }
 
@@ -140,12 +140,6 @@ impl Map {
             .map(|kf| kf.world_from_cam * record.kf_from_cam)
     }
 
-    /// `(t_ns, world_from_cam)` of every trajectory record whose keyframe still exists, in
-    /// order. A run of predicted records between two measured ones (frames whose images
-    /// carried no measurement, e.g. an illumination flood) is placed on the geodesic between
-    /// those two measured poses, by time: once the frame after the run is measured, the
-    /// interpolation uses both sides, where the prediction made while tracking extrapolated
-    /// from one. A predicted run with no measured record after it keeps its predictions.
     /// [`Map::trajectory_poses`] with the camera centres of each map segment re-estimated by
     /// the trajectory smoother ([`super::smoothing`], acceleration-noise density `q`, m²/s³):
     /// each measured frame weighted by its [`FrameRecord::position_cov`] (a measured frame
@@ -217,6 +211,12 @@ impl Map {
         Ok(())
     }
 
+    /// `(t_ns, world_from_cam)` of every trajectory record whose keyframe still exists, in
+    /// order. A run of predicted records between two measured ones (frames whose images
+    /// carried no measurement, e.g. an illumination flood) is placed on the geodesic between
+    /// those two measured poses, by time: once the frame after the run is measured, the
+    /// interpolation uses both sides, where the prediction made while tracking extrapolated
+    /// from one. A predicted run with no measured record after it keeps its predictions.
     pub fn trajectory_poses(&self) -> Vec<(i64, Se3)> {
         let poses: Vec<(&FrameRecord, Se3)> = self
             .trajectory

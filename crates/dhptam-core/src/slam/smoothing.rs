@@ -68,7 +68,7 @@ pub fn smooth_centres(samples: &[CentreSample], q: f64) -> Result<Vec<Vector3<f6
     let pattern = BlockPattern::new(n, 3, pairs);
     let mut values = pattern.zeros();
     let mut rhs = vec![0.0; 3 * n];
-    // Adds `v · I₃` (isotropic) or `m` to block (i, k), i ≤ k.
+    // Adds `m` to block (i, k), stored as the upper block (min, max).
     let add = |values: &mut [f64], i: usize, k: usize, m: &Matrix3<f64>| {
         let (i, k) = (i.min(k), i.max(k));
         let slot = pattern.slot(i, k).expect("block in the pattern");
