@@ -9,7 +9,7 @@ the bridge keyframes against new map segments; ``--flood both`` also runs ``fusi
 to measure the prediction across illumination floods; ``--flood-frames both`` also runs
 ``fusion`` with ``[fusion] flood_frames = false`` (every flood frame predicted, also those
 leaving a DVS-biased segment with good frames, and the first clean frame after them blended
-with its events). Prints a Markdown table (with the bridges,
+with its events). Prints a Markdown table (with the error per lighting level, the bridges,
 new map segments and relocalisations of each run) and writes the runs under ``--out``.
 
     python benches/bench_accuracy_demo.py [--seeds 0,2] [--modes fusion,frames,events]
@@ -66,8 +66,8 @@ def main() -> int:
     add_config_option(parser)
     args = parser.parse_args()
 
-    from dhptam.demo import GROUND_TRUTH, demo_sequence
-    from dhptam.eval import load_trajectory
+    from dhptam.demo import GROUND_TRUTH, demo_sequence, lighting_of
+    from dhptam.eval import errors_by_segment, load_trajectory
     from dhptam.run import MODES
 
     modes = choices(parser, args.modes, MODES, "mode")
@@ -82,12 +82,14 @@ def main() -> int:
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
         "| seed | mode | bridge | flood predict | flood frames | warp depth | back-end | frames | tracked "
-        "| predicted | ATE RMSE [m] | ATE [% of path] | bridges | new segments | relocalisations |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| predicted | ATE RMSE [m] | ATE [% of path] | normal / dark / bright light [mm] "
+        "| bridges | new segments | relocalisations |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for seed in (int(s) for s in args.seeds.split(",") if s):
         sequence = demo_sequence(seed=seed, progress=False)
         reference = load_trajectory(sequence / GROUND_TRUTH)
+        lighting = lighting_of("demo", reference)
         for mode in modes:
             variants = [
                 (bridge, flood, frames_across, warp)
@@ -113,6 +115,8 @@ def main() -> int:
                         threaded=backend == "threaded",
                     )  # fmt: skip
                     t = result.tracking
+                    parts = errors_by_segment(ev, lighting).values()
+                    by_light = " / ".join(f"{1000 * p.rmse_m:.1f}" if p.poses else "–" for p in parts)
                     shown = ("on" if bridge else "off") if mode == "fusion" else "–"
                     shown_flood = ("on" if flood else "off") if mode != "frames" else "–"
                     shown_frames = ("on" if frames_across else "off") if mode == "fusion" and flood else "–"
@@ -121,7 +125,8 @@ def main() -> int:
                         f"| {seed} | {mode} | {shown} | {shown_flood} | {shown_frames} | {shown_warp} "
                         f"| {backend} | {result.frames} "
                         f"| {result.tracked} | {t.get('predicted', 0)} "
-                        f"| {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} | {t.get('bridges', 0)} "
+                        f"| {ev.ate_rmse_m:.4f} | {ev.ate_percent_of_path:.2f} | {by_light} "
+                        f"| {t.get('bridges', 0)} "
                         f"| {t.get('segments', 0)} | {t.get('relocalisations', 0)} |"
                     )
                     print(lines[-1], file=sys.stderr)

@@ -11,7 +11,15 @@ import pytest
 from dhptam import SE3, SO3
 from dhptam.cli import main
 from dhptam.errors import ConfigError, FileError, InputError, NumericalError, ParseError
-from dhptam.eval import Trajectory, coverage, evaluate, load_trajectory, read_suite, run_suite
+from dhptam.eval import (
+    Trajectory,
+    coverage,
+    errors_by_segment,
+    evaluate,
+    load_trajectory,
+    read_suite,
+    run_suite,
+)
 from dhptam.trajectory import read_tum, rows_to_matrices, write_tum
 
 _NS = 1_000_000_000
@@ -104,6 +112,33 @@ def test_perturbed_copy_has_the_known_ate() -> None:
     # Consecutive poses move by 2d relative to each other along z.
     assert result.rpe["rmse"] == pytest.approx(2 * d, rel=1e-6)
     assert result.ate_percent_of_path == pytest.approx(100 * d / result.path_length_m)
+
+
+def test_errors_by_segment_split_the_ate_by_labelled_spans() -> None:
+    """The circle's second half is off by ±3 cm along z, the first half exact: split at its
+    middle (the second half in two spans of one label) each part gets its own RMSE (the
+    whole-run alignment tilts a little towards the noisy half), the two pool back into the
+    whole run's; a label without a pose gets NaN."""
+    ref = _circle(40)
+    rows = ref.rows.copy()
+    rows[20:, 2] += 0.03 * (-1.0) ** np.arange(20)
+    result = evaluate(Trajectory(ref.t_ns, rows), ref, align="se3")
+    t = ref.t_ns
+    parts = errors_by_segment(
+        result,
+        [("first", int(t[0]), int(t[20])), ("second", int(t[20]), int(t[30])),
+         ("second", int(t[30]), int(t[-1]) + 1), ("never", 0, 1)],
+    )  # fmt: skip
+    assert list(parts) == ["first", "second", "never"]
+    assert parts["first"].poses == 20 and parts["second"].poses == 20
+    assert parts["first"].rmse_m < 0.1 * parts["second"].rmse_m
+    assert parts["second"].rmse_m == pytest.approx(0.03, rel=0.05)
+    assert np.hypot(parts["first"].rmse_m, parts["second"].rmse_m) / np.sqrt(2) == pytest.approx(
+        result.ate_rmse_m, rel=1e-9
+    )
+    assert parts["never"].poses == 0 and np.isnan(parts["never"].rmse_m)
+    with pytest.raises(InputError, match="ends before it starts"):
+        errors_by_segment(result, [("backwards", int(t[5]), int(t[1]))])
 
 
 def test_se3_alignment_removes_a_rigid_motion_and_sim3_a_scale() -> None:

@@ -206,6 +206,39 @@ def test_demo_writes_the_table_and_the_report(
     assert png.startswith(b"\x89PNG")
     assert "report:" in capsys.readouterr().out
     assert np.isfinite(rows[0].evaluation.ate_rmse_m)
+    # One lighting level: no table by lighting.
+    assert "[mm]" not in report
+
+
+def test_demo_splits_the_error_by_lighting_on_an_hdr_sequence(
+    sim_tiny: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """On the ``hdr`` profile the report and the printout carry each mode's ATE RMSE over the
+    frames of each lighting level, the figures ``errors_by_segment`` gives for the spans of
+    ``lighting_segments`` over the run's own evaluation."""
+    from dhptam.demo import demo, lighting_of
+    from dhptam.eval import errors_by_segment, load_trajectory
+    from dhptam.sim import lighting_segments
+
+    cache = tmp_path / "cache"
+    (cache / "sequences" / "seed0").mkdir(parents=True)
+    os.symlink(sim_tiny, cache / "sequences" / "seed0" / "tiny")
+    monkeypatch.setenv("DHPTAM_CACHE_DIR", str(cache))
+    rows = demo(tmp_path / "demo", preset="tiny", seed=0, modes=("fusion",), progress=False)
+    reference = load_trajectory(sim_tiny / "groundtruth_frame_left.txt")
+    segments = lighting_of("tiny", reference)
+    assert segments == lighting_segments("hdr", 1.0)
+    parts = errors_by_segment(rows[0].evaluation, segments)
+    # 20 frames in 1 s: the bright span holds two, which this short run may lose.
+    assert parts["normal"].poses > 0 and parts["dark"].poses > 0
+    expected = "| fusion | " + " | ".join(
+        f"{1000 * parts[label].rmse_m:.1f} ({parts[label].poses})" if parts[label].poses else "–"
+        for label in ("normal", "dark", "bright")
+    )
+    report = (tmp_path / "demo" / "report.md").read_text()
+    assert "| mode | normal [mm] | dark [mm] | bright [mm] |" in report
+    assert expected in report
+    assert expected in capsys.readouterr().out
 
 
 def test_demo_runs_start_from_the_given_configuration(

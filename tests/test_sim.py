@@ -15,7 +15,16 @@ from dhptam import SE3, _core
 from dhptam.cli import main
 from dhptam.datasets import load_tumvie
 from dhptam.errors import InputError, ParseError
-from dhptam.sim import GROUND_TRUTH_FILE, IMU_FROM_MARKER, PRESETS, RIGS, load_photos, simulate, simulator_for
+from dhptam.sim import (
+    GROUND_TRUTH_FILE,
+    IMU_FROM_MARKER,
+    PRESETS,
+    RIGS,
+    lighting_segments,
+    load_photos,
+    simulate,
+    simulator_for,
+)
 
 HDR_DURATION_S = 2.0
 
@@ -357,3 +366,19 @@ def test_hot_pixels_add_their_periodic_events_and_leave_the_scene_events_alone(t
     assert np.array_equal(np.sort(whole), np.sort(parts))
     with pytest.raises(InputError, match="hot_pixels"):
         simulate(tmp_path, preset="tiny", duration_s=0.1, name="bad", hot_pixels=0.5)
+
+
+def test_lighting_segments_put_the_profile_on_the_sequence_clock() -> None:
+    """The spans lit at one level, in nanoseconds of a sequence of the given duration, in
+    time order, the ramps between levels in none of them; bad input names its field."""
+    assert lighting_segments("normal", 2.0) == [("normal", 0, 2_000_000_000)]
+    hdr = lighting_segments("hdr", 10.0)
+    assert [label for label, _, _ in hdr] == ["normal", "dark", "normal", "bright", "normal"]
+    assert hdr[0][1] == 0 and hdr[-1][2] == 10_000_000_000
+    ends = [t for _, start, end in hdr for t in (start, end)]
+    assert all(a < b for a, b in zip(ends[1:-1:2], ends[2::2], strict=True)), "ramps between spans"
+    assert [(s * 4, e * 4) for _, s, e in lighting_segments("hdr", 2.5)] == [(s, e) for _, s, e in hdr]
+    with pytest.raises(InputError, match="profile"):
+        lighting_segments("sunny", 1.0)
+    with pytest.raises(InputError, match="duration"):
+        lighting_segments("hdr", 0.0)

@@ -24,6 +24,7 @@ Procedure (what :func:`evaluate` does, in order):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -201,6 +202,51 @@ class EvalResult:
         for key in ("t_ns", "errors_m", "estimate_aligned_xyz", "reference_xyz"):
             d.pop(key)
         return d
+
+
+@dataclass(frozen=True)
+class SegmentError:
+    """Position error of the matched poses inside one labelled part of a run (see
+    :func:`errors_by_segment`): ``poses`` of them, ``rmse_m`` their ATE RMSE (NaN without
+    any)."""
+
+    label: str
+    poses: int
+    rmse_m: float
+
+
+def errors_by_segment(
+    result: EvalResult, segments: Sequence[tuple[str, int, int]]
+) -> dict[str, SegmentError]:
+    """The ATE RMSE of ``result``'s matched poses inside each labelled span ``(label,
+    start_ns, end_ns)`` (start included, end excluded; spans sharing a label are pooled), keyed
+    by label in order of first appearance. The errors are those of ``result``'s alignment over
+    the whole run: what each part contributes to the headline figure, not the part aligned on
+    its own. Used for the lighting segments of simulated sequences
+    (:func:`dhptam.sim.lighting_segments`).
+
+    >>> import numpy as np
+    >>> r = EvalResult("e", "r", "se3", 4, 4, 4, 1.0, 1.0, 0.0, 0.0, {}, {}, 1, 1.0, 0.0, [0.0] * 3,
+    ...                t_ns=np.array([0, 1, 2, 3]), errors_m=np.array([0.1, 0.1, 0.3, 0.4]))
+    >>> {k: round(v.rmse_m, 3) for k, v in errors_by_segment(r, [("a", 0, 2), ("b", 2, 3)]).items()}
+    {'a': 0.1, 'b': 0.3}
+    """
+    out: dict[str, SegmentError] = {}
+    t = np.asarray(result.t_ns, np.int64)
+    errors = np.asarray(result.errors_m, np.float64)
+    for label in dict.fromkeys(label for label, _, _ in segments):
+        inside = np.zeros(t.shape, bool)
+        for name, start, end in segments:
+            if end < start:
+                raise InputError(
+                    f"segment {name!r} ends before it starts ({start} > {end} ns)", field="segments"
+                )
+            if name == label:
+                inside |= (t >= start) & (t < end)
+        n = int(np.count_nonzero(inside))
+        rmse = float(np.sqrt(np.mean(errors[inside] ** 2))) if n else float("nan")
+        out[label] = SegmentError(label, n, rmse)
+    return out
 
 
 def _evo_trajectory(t_ns: _I64, rows: _F64) -> Any:

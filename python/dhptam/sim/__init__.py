@@ -21,7 +21,17 @@ Example::
 
 from __future__ import annotations
 
-from .presets import DEFAULT_PRESET, IMU_FROM_MARKER, MOTIONS, PRESETS, PROFILES, RIGS, Preset, RigSpec
+from .presets import (
+    DEFAULT_PRESET,
+    IMU_FROM_MARKER,
+    MOTIONS,
+    PRESETS,
+    PROFILES,
+    RIGS,
+    Preset,
+    RigSpec,
+    lighting_segments,
+)
 from .simulate import GROUND_TRUTH_FILE, HotPixelSource, SimulationSummary, simulate, simulator_for
 from .textures import PHOTO_NAMES, load_photos
 
@@ -38,6 +48,7 @@ __all__ = [
     "Preset",
     "RigSpec",
     "SimulationSummary",
+    "lighting_segments",
     "load_photos",
     "simulate",
     "simulator_for",

@@ -173,6 +173,28 @@ MOTIONS = ("desk_spiral", "translation_1d", "shake_6dof", "closed_loop")
 PROFILES = ("normal", "hdr", "flicker", "dark")
 
 
+def lighting_segments(profile: str, duration_s: float) -> list[tuple[str, int, int]]:
+    """The spans of a simulated sequence of ``duration_s`` seconds lit at one level under
+    ``profile``: ``(label, start_ns, end_ns)`` in the sequence's time (which starts at 0), label
+    ``normal``, ``dark`` or ``bright``, in time order. The ramps between two levels belong to
+    no span. ``hdr`` gives normal, dark, normal, bright, normal; the other profiles one span.
+
+    >>> [(label, start / 1e9, end / 1e9) for label, start, end in lighting_segments("hdr", 4.0)][:2]
+    [('normal', 0.0, 1.2), ('dark', 1.32, 2.08)]
+    """
+    from .. import _core
+    from ..errors import InputError
+
+    if profile not in PROFILES:
+        raise InputError(f"unknown profile {profile!r}; choose one of {', '.join(PROFILES)}", field="profile")
+    if not duration_s > 0:
+        raise InputError(f"duration must be positive, got {duration_s}", field="duration")
+    return [
+        (label, round(start * duration_s * 1e9), round(end * duration_s * 1e9))
+        for label, start, end in _core.sim_profile_segments(profile)
+    ]
+
+
 def describe_presets() -> str:
     """One line per preset, for ``--help``."""
     lines = []
