@@ -89,7 +89,7 @@ def main() -> int:
     for seed in (int(s) for s in args.seeds.split(",") if s):
         sequence = demo_sequence(seed=seed, progress=False)
         reference = load_trajectory(sequence / GROUND_TRUTH)
-        lighting = lighting_of("demo", reference)
+        lighting = lighting_of(sequence, "demo", reference)
         for mode in modes:
             variants = [
                 (bridge, flood, frames_across, warp)

@@ -17,8 +17,10 @@ from dhptam.eval import (
     errors_by_segment,
     evaluate,
     load_trajectory,
+    read_segments,
     read_suite,
     run_suite,
+    write_segments,
 )
 from dhptam.trajectory import read_tum, rows_to_matrices, write_tum
 
@@ -139,6 +141,34 @@ def test_errors_by_segment_split_the_ate_by_labelled_spans() -> None:
     assert parts["never"].poses == 0 and np.isnan(parts["never"].rmse_m)
     with pytest.raises(InputError, match="ends before it starts"):
         errors_by_segment(result, [("backwards", int(t[5]), int(t[1]))])
+
+
+def test_segments_files_round_trip_and_name_the_bad_line(tmp_path: Path) -> None:
+    spans = [("dark", 1_320_000_000, 2_080_000_000), ("bright", 2_920_000_001, 3_280_000_000)]
+    write_segments(tmp_path / "spans.csv", spans)
+    assert read_segments(tmp_path / "spans.csv") == spans  # exact to the nanosecond
+    (tmp_path / "hand.csv").write_text("# my recording\n\nlabel,start_s,end_s\ndark, 1.5 ,2\ndark,3,4.25\n")
+    assert read_segments(tmp_path / "hand.csv") == [("dark", 1_500_000_000, 2_000_000_000),
+                                                     ("dark", 3_000_000_000, 4_250_000_000)]  # fmt: skip
+    for text, line, match in [
+        ("dark,1.0\n", 1, "expected 'label,start_s,end_s'"),
+        ("label,start_s,end_s\ndark,1.0,soon\n", 2, "end_s must be a number of seconds"),
+        ("dark,2.0,1.0\n", 1, "must end after it starts"),
+        ("dark,nan,1.0\n", 1, "start_s must be finite"),
+        (",1,2\n", 1, "expected 'label,start_s,end_s'"),
+    ]:
+        (tmp_path / "bad.csv").write_text(text)
+        with pytest.raises(ParseError, match=match) as info:
+            read_segments(tmp_path / "bad.csv")
+        assert info.value.line == line and info.value.path == str(tmp_path / "bad.csv")
+    (tmp_path / "empty.csv").write_text("label,start_s,end_s\n# nothing yet\n")
+    with pytest.raises(ParseError, match="no span"):
+        read_segments(tmp_path / "empty.csv")
+    with pytest.raises(FileError, match="not found"):
+        read_segments(tmp_path / "missing.csv")
+    with pytest.raises(InputError, match="without commas"):
+        write_segments(tmp_path / "x.csv", [("a,b", 0, 1)])
+    assert not (tmp_path / "x.csv").exists()
 
 
 def test_se3_alignment_removes_a_rigid_motion_and_sim3_a_scale() -> None:
@@ -263,6 +293,36 @@ def test_cli_eval_writes_json_and_plots(tmp_path: Path, capsys: pytest.CaptureFi
     )
     assert code == 2
     assert "broken.tum:2" in capsys.readouterr().err
+
+
+def test_cli_eval_splits_the_error_by_the_segments_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--segments``: each label's ATE RMSE printed and in eval.json (NaN where no pose); a
+    bad segments file fails before anything is written."""
+    ref = _circle(40)
+    rows = ref.rows.copy()
+    rows[20:, 2] += 0.01 * (-1.0) ** np.arange(20)
+    write_tum(tmp_path / "ref.tum", ref.t_ns, ref.rows)
+    write_tum(tmp_path / "est.tum", ref.t_ns, rows)
+    write_segments(
+        tmp_path / "spans.csv",
+        [("calm", int(ref.t_ns[0]), int(ref.t_ns[20])), ("shaky", int(ref.t_ns[20]), int(ref.t_ns[-1]) + 1),
+         ("later", int(ref.t_ns[-1]) + _NS, int(ref.t_ns[-1]) + 2 * _NS)],
+    )  # fmt: skip
+    base = ["eval", "--estimate", str(tmp_path / "est.tum"), "--reference", str(tmp_path / "ref.tum")]
+    assert main([*base, "--segments", str(tmp_path / "spans.csv"), "--out", str(tmp_path / "out")]) == 0
+    printed = capsys.readouterr().out
+    assert "calm: ATE RMSE" in printed and "over 20 poses" in printed and "later: no pose" in printed
+    doc = json.loads((tmp_path / "out" / "eval.json").read_text())
+    assert doc["segments"]["calm"]["poses"] == 20 and doc["segments"]["shaky"]["poses"] == 20
+    assert doc["segments"]["shaky"]["ate_rmse_m"] == pytest.approx(0.01, rel=0.05)
+    assert doc["segments"]["calm"]["ate_rmse_m"] < 0.1 * doc["segments"]["shaky"]["ate_rmse_m"]
+    assert np.isnan(doc["segments"]["later"]["ate_rmse_m"])
+    (tmp_path / "bad.csv").write_text("calm,0,oops\n")
+    assert main([*base, "--segments", str(tmp_path / "bad.csv"), "--out", str(tmp_path / "out2")]) == 2
+    assert "bad.csv:1: end_s must be a number of seconds" in capsys.readouterr().err
+    assert not (tmp_path / "out2").exists()
 
 
 def test_suite_gives_a_comparison_table(tmp_path: Path) -> None:

@@ -226,8 +226,10 @@ def test_demo_splits_the_error_by_lighting_on_an_hdr_sequence(
     monkeypatch.setenv("DHPTAM_CACHE_DIR", str(cache))
     rows = demo(tmp_path / "demo", preset="tiny", seed=0, modes=("fusion",), progress=False)
     reference = load_trajectory(sim_tiny / "groundtruth_frame_left.txt")
-    segments = lighting_of("tiny", reference)
+    segments = lighting_of(sim_tiny, "tiny", reference)
     assert segments == lighting_segments("hdr", 1.0)
+    # A sequence simulated before lighting.csv existed: the preset's profile gives the same.
+    assert lighting_of(tmp_path, "tiny", reference) == segments
     parts = errors_by_segment(rows[0].evaluation, segments)
     # 20 frames in 1 s: the bright span holds two, which this short run may lose.
     assert parts["normal"].poses > 0 and parts["dark"].poses > 0

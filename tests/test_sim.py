@@ -368,9 +368,13 @@ def test_hot_pixels_add_their_periodic_events_and_leave_the_scene_events_alone(t
         simulate(tmp_path, preset="tiny", duration_s=0.1, name="bad", hot_pixels=0.5)
 
 
-def test_lighting_segments_put_the_profile_on_the_sequence_clock() -> None:
+def test_lighting_segments_put_the_profile_on_the_sequence_clock(sim_tiny: Path) -> None:
     """The spans lit at one level, in nanoseconds of a sequence of the given duration, in
-    time order, the ramps between levels in none of them; bad input names its field."""
+    time order, the ramps between levels in none of them; bad input names its field. Every
+    simulated sequence carries its own as ``lighting.csv``."""
+    from dhptam.eval import read_segments
+
+    assert read_segments(sim_tiny / "lighting.csv") == lighting_segments("hdr", 1.0)
     assert lighting_segments("normal", 2.0) == [("normal", 0, 2_000_000_000)]
     hdr = lighting_segments("hdr", 10.0)
     assert [label for label, _, _ in hdr] == ["normal", "dark", "normal", "bright", "normal"]

@@ -172,7 +172,7 @@ def _add_solve_parser(sub: Any) -> None:
 
 
 def _eval_command(args: argparse.Namespace) -> int:
-    from .eval import evaluate, load_trajectory, run_suite, write_result
+    from .eval import errors_by_segment, evaluate, load_trajectory, read_segments, run_suite, write_result
 
     if args.suite:
         table, _ = run_suite(args.suite, args.out)
@@ -188,8 +188,11 @@ def _eval_command(args: argparse.Namespace) -> int:
         mocap_calibration=args.mocap_calibration,
         calibration=args.calibration,
     )
+    # Read before the evaluation: a bad segments file fails before anything is written.
+    spans = read_segments(args.segments) if args.segments else None
     result = evaluate(estimate, reference, align=args.align, rpe_delta=args.rpe_delta)
-    paths = write_result(result, args.out)
+    parts = errors_by_segment(result, spans) if spans is not None else None
+    paths = write_result(result, args.out, segments=parts)
     sys.stdout.write(
         f"ATE RMSE {result.ate_rmse_m:.4f} m "
         f"({result.ate_percent_of_path:.2f} % of {result.path_length_m:.2f} m), "
@@ -197,6 +200,9 @@ def _eval_command(args: argparse.Namespace) -> int:
         f"{result.poses_matched}/{result.poses_estimate} poses, {args.align} alignment "
         f"by the {result.aligned_by} (scale {result.scale:.4f})\n"
     )
+    for part in (parts or {}).values():
+        figure = f"ATE RMSE {part.rmse_m:.4f} m over {part.poses} poses" if part.poses else "no pose"
+        sys.stdout.write(f"  {part.label}: {figure}\n")
     sys.stdout.write(f"wrote {paths['json']}\n")
     return 0
 
@@ -225,6 +231,14 @@ def _add_eval_command(sub: Any) -> None:
         "--align", choices=list(ALIGNMENTS), default="se3", help="Umeyama alignment (default se3)"
     )
     ev.add_argument("--rpe-delta", type=int, default=1, metavar="FRAMES", help="RPE pose distance in frames")
+    ev.add_argument(
+        "--segments",
+        metavar="FILE",
+        help=(
+            "labelled time spans (CSV lines 'label,start_s,end_s'; a simulated sequence's "
+            "lighting.csv is one): also report the ATE RMSE over the poses of each label"
+        ),
+    )
     ev.add_argument("--suite", metavar="FILE", help="evaluate every run of a suite TOML instead")
     ev.add_argument("--out", required=True, metavar="DIR", help="output folder")
     ev.set_defaults(func=_eval_command)

@@ -161,20 +161,28 @@ def _plot_overview(
 _SHADES = {"dark": "0.45", "bright": "gold"}
 
 
-def lighting_of(preset: str, reference: Any) -> list[tuple[str, int, int]]:
-    """The lighting segments (:func:`dhptam.sim.lighting_segments`) of a sequence simulated
-    with ``preset``, spanning ``reference``'s time as the simulator's ground truth does; empty
-    for an unknown preset or one lit at a single level."""
+def lighting_of(sequence: str | Path, preset: str, reference: Any) -> list[tuple[str, int, int]]:
+    """The lighting segments of a simulated ``sequence``: its ``lighting.csv`` (written by the
+    simulator, :func:`dhptam.eval.read_segments`), else, for a sequence simulated before that
+    file existed, :func:`dhptam.sim.lighting_segments` of ``preset``'s profile over
+    ``reference``'s span (the simulator's ground truth spans the sequence); empty when the
+    sequence is lit at a single level or ``preset`` is unknown."""
+    from .eval import LIGHTING_FILE, read_segments
     from .sim import PRESETS, lighting_segments
 
-    spec = PRESETS.get(preset)
-    if spec is None or len(reference.t_ns) < 2:
-        return []
-    t0 = int(reference.t_ns[0])
-    segments = lighting_segments(spec.profile, (int(reference.t_ns[-1]) - t0) / _NS)
-    if len({label for label, _, _ in segments}) < 2:
-        return []
-    return [(label, t0 + start, t0 + end) for label, start, end in segments]
+    path = Path(sequence) / LIGHTING_FILE
+    if path.is_file():
+        segments = read_segments(path)
+    else:
+        spec = PRESETS.get(preset)
+        if spec is None or len(reference.t_ns) < 2:
+            return []
+        t0 = int(reference.t_ns[0])
+        segments = [
+            (label, t0 + start, t0 + end)
+            for label, start, end in lighting_segments(spec.profile, (int(reference.t_ns[-1]) - t0) / _NS)
+        ]
+    return segments if len({label for label, _, _ in segments}) > 1 else []
 
 
 def _segment_table(rows: list[DemoRow], segments: list[tuple[str, int, int]]) -> str:
@@ -270,7 +278,7 @@ def demo(
         except InputError as error:
             note = f"(not evaluated: {error})"
         rows.append(DemoRow(mode, result, evaluation, note))
-    segments = lighting_of(preset, reference)
+    segments = lighting_of(sequence, preset, reference)
     _plot_overview(rows, reference, out_dir / "overview.png", segments)
     table = _table(rows)
     by_lighting = (

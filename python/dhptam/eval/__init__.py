@@ -29,10 +29,12 @@ from .metrics import (
     load_trajectory,
 )
 from .report import markdown_table, plot_errors, plot_trajectories, write_result
+from .segments import LIGHTING_FILE, read_segments, write_segments
 from .suite import Suite, SuiteRun, read_suite, run_suite
 
 __all__ = [
     "ALIGNMENTS",
+    "LIGHTING_FILE",
     "REFERENCE_FORMATS",
     "EvalResult",
     "SegmentError",
@@ -47,7 +49,9 @@ __all__ = [
     "markdown_table",
     "plot_errors",
     "plot_trajectories",
+    "read_segments",
     "read_suite",
     "run_suite",
     "write_result",
+    "write_segments",
 ]

@@ -9,11 +9,11 @@ from __future__ import annotations
 import io
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 from ..trajectory import atomic_write_bytes, atomic_write_text
-from .metrics import EvalResult
+from .metrics import EvalResult, SegmentError
 
 _NS = 1_000_000_000
 
@@ -64,15 +64,25 @@ def plot_errors(result: EvalResult, title: str = "") -> bytes:
     return _figure_bytes(fig)
 
 
-def write_result(result: EvalResult, out_dir: str | Path, name: str = "eval") -> dict[str, Path]:
-    """Writes ``<name>.json``, ``<name>_trajectories.png`` and ``<name>_errors.png``."""
+def write_result(
+    result: EvalResult,
+    out_dir: str | Path,
+    name: str = "eval",
+    segments: Mapping[str, SegmentError] | None = None,
+) -> dict[str, Path]:
+    """Writes ``<name>.json``, ``<name>_trajectories.png`` and ``<name>_errors.png``; with
+    ``segments`` (:func:`~dhptam.eval.metrics.errors_by_segment`) the JSON also holds
+    ``"segments"``: per label its ``poses`` and ``ate_rmse_m`` (NaN without poses)."""
     out = Path(out_dir)
     paths = {
         "json": out / f"{name}.json",
         "trajectories": out / f"{name}_trajectories.png",
         "errors": out / f"{name}_errors.png",
     }
-    atomic_write_text(paths["json"], json.dumps(result.to_dict(), indent=2, allow_nan=True) + "\n")
+    data = result.to_dict()
+    if segments is not None:
+        data["segments"] = {k: {"poses": v.poses, "ate_rmse_m": v.rmse_m} for k, v in segments.items()}
+    atomic_write_text(paths["json"], json.dumps(data, indent=2, allow_nan=True) + "\n")
     atomic_write_bytes(paths["trajectories"], plot_trajectories(result))
     atomic_write_bytes(paths["errors"], plot_errors(result))
     return paths

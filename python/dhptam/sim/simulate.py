@@ -15,7 +15,18 @@ from .. import _core
 from .._core import Config
 from ..datasets import CAMERA_KEYS, RigCalibration, TumVieWriter, compose_poses
 from ..errors import InputError
-from .presets import DEFAULT_PRESET, IMU_FROM_MARKER, MOTIONS, PRESETS, PROFILES, RIGS, Preset, RigSpec
+from ..eval.segments import LIGHTING_FILE, segments_text
+from .presets import (
+    DEFAULT_PRESET,
+    IMU_FROM_MARKER,
+    MOTIONS,
+    PRESETS,
+    PROFILES,
+    RIGS,
+    Preset,
+    RigSpec,
+    lighting_segments,
+)
 from .textures import load_photos
 
 log = logging.getLogger(__name__)
@@ -173,7 +184,8 @@ def simulate(
     SimulationSummary
         The sequence folder and counts. The folder holds the TUM-VIE files
         (``load_tumvie`` reads them) plus ``groundtruth_frame_left.txt``, the left frame
-        camera's poses as a TUM trajectory.
+        camera's poses as a TUM trajectory, and ``lighting.csv``, the spans lit at one level
+        (:func:`lighting_segments`; a segments file, :mod:`dhptam.eval.segments`).
     """
     if preset not in PRESETS:
         raise InputError(f"unknown preset {preset!r}; choose one of {', '.join(PRESETS)}", field="preset")
@@ -234,6 +246,7 @@ def simulate(
         writer.set_mocap(mocap_t, compose_poses(sim.world_from_body(mocap_t), IMU_FROM_MARKER))
         gt_t = np.arange(0, duration_ns + 1, round(_NS / GROUND_TRUTH_RATE_HZ), dtype=np.int64)
         writer.add_text_file(GROUND_TRUTH_FILE, _tum_lines(gt_t, sim.world_from_cam(0, gt_t)))
+        writer.add_text_file(LIGHTING_FILE, segments_text(lighting_segments(profile, duration_ns / _NS)))
     if bar is not None:
         bar.close()
     path = Path(out_dir) / (name or preset)
