@@ -8,8 +8,9 @@ back-and-forth translation (``1d-trans``), fast six-degree-of-freedom shaking (`
 closed loop around the room (``loop``). Each sequence is simulated once into the dhptam cache
 (``$DHPTAM_CACHE_DIR`` or ``~/.cache/dhptam``, under ``sequences/presets-seed<S>-<D>s/``) and
 reused; every run is evaluated against the simulator's ground truth (evo, SE(3) alignment, left
-frame camera). Prints a Markdown table for docs/BENCHMARKS.md and writes the runs, ``eval.json``
-files and ``report.md`` under ``--out``.
+frame camera). Prints a Markdown table for docs/BENCHMARKS.md (and, for presets lit at
+several levels, each run's error per lighting level) and writes the runs, ``eval.json`` files
+and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_presets.py [--presets desk,dark,...] [--duration 4]
         [--seed 3] [--modes fusion,frames,events] [--features orb] [--out bench-presets] [--sync]
@@ -60,8 +61,8 @@ def main() -> int:
     )
     args = parser.parse_args()
 
-    from dhptam.demo import GROUND_TRUTH, cache_dir
-    from dhptam.eval import load_trajectory
+    from dhptam.demo import GROUND_TRUTH, cache_dir, lighting_of
+    from dhptam.eval import errors_by_segment, load_trajectory
     from dhptam.run import MODES
     from dhptam.sim import PRESETS, simulate
 
@@ -79,6 +80,15 @@ def main() -> int:
         *TABLE_HEAD,
     ]
     config = bench_config(args.config, keypoint_sigma_toml(args.keypoint_sigma))
+    # Presets lit at several levels (hdr): each run's ATE per level, in a second table.
+    by_light = [
+        "",
+        "ATE RMSE [mm] per lighting level (presets lit at several levels; the whole run's alignment):",
+        "",
+        "| sequence | mode | normal | dark | bright |",
+        "|---|---|---|---|---|",
+    ]
+    split = False
     for preset in presets:
         sequence = root / preset
         if not (sequence / GROUND_TRUTH).is_file():
@@ -96,7 +106,16 @@ def main() -> int:
                 threaded=not args.sync,
             )
             lines.append(table_row(preset, mode, result, ev))
-    return finish_table(lines, args.out)
+            lighting = lighting_of(sequence, preset, reference)
+            if lighting and ev is not None:
+                parts = errors_by_segment(ev, lighting)
+                cells = [
+                    f"{1000 * parts[k].rmse_m:.1f}" if k in parts and parts[k].poses else "–"
+                    for k in ("normal", "dark", "bright")
+                ]
+                by_light.append(f"| {preset} | {mode} | " + " | ".join(cells) + " |")
+                split = True
+    return finish_table(lines + (by_light if split else []), args.out)
 
 
 if __name__ == "__main__":
