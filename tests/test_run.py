@@ -241,6 +241,18 @@ def test_demo_splits_the_error_by_lighting_on_an_hdr_sequence(
     assert "| mode | normal [mm] | dark [mm] | bright [mm] |" in report
     assert expected in report
     assert expected in capsys.readouterr().out
+    # A damaged lighting.csv costs the table, not the report.
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for item in sim_tiny.iterdir():
+        if item.name != "lighting.csv":
+            os.symlink(item, broken / item.name)
+    (broken / "lighting.csv").write_text("dark,soon,later\n")
+    os.remove(cache / "sequences" / "seed0" / "tiny")
+    os.symlink(broken, cache / "sequences" / "seed0" / "tiny")
+    demo(tmp_path / "demo2", preset="tiny", seed=0, modes=("frames",), progress=False)
+    report = (tmp_path / "demo2" / "report.md").read_text()
+    assert "| frames | 20 |" in report and "[mm]" not in report
 
 
 def test_demo_runs_start_from_the_given_configuration(

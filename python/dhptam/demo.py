@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from .errors import FileError, InputError
 from .run import MODES, RunResult, run
 
 log = logging.getLogger(__name__)
@@ -278,7 +278,11 @@ def demo(
         except InputError as error:
             note = f"(not evaluated: {error})"
         rows.append(DemoRow(mode, result, evaluation, note))
-    segments = lighting_of(sequence, preset, reference)
+    try:
+        segments = lighting_of(sequence, preset, reference)
+    except (InputError, FileError) as error:  # a damaged lighting.csv costs the table, not the report
+        log.warning("no table by lighting level: %s", error)
+        segments = []
     _plot_overview(rows, reference, out_dir / "overview.png", segments)
     table = _table(rows)
     by_lighting = (
