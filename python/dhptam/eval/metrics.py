@@ -231,16 +231,15 @@ def errors_by_segment(
     >>> {k: round(v.rmse_m, 3) for k, v in errors_by_segment(r, [("a", 0, 2), ("b", 2, 3)]).items()}
     {'a': 0.1, 'b': 0.3}
     """
+    for name, start, end in segments:
+        if end < start:
+            raise InputError(f"segment {name!r} ends before it starts ({start} > {end} ns)", field="segments")
     out: dict[str, SegmentError] = {}
     t = np.asarray(result.t_ns, np.int64)
     errors = np.asarray(result.errors_m, np.float64)
     for label in dict.fromkeys(label for label, _, _ in segments):
         inside = np.zeros(t.shape, bool)
         for name, start, end in segments:
-            if end < start:
-                raise InputError(
-                    f"segment {name!r} ends before it starts ({start} > {end} ns)", field="segments"
-                )
             if name == label:
                 inside |= (t >= start) & (t < end)
         n = int(np.count_nonzero(inside))

@@ -21,6 +21,7 @@ from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 from ..errors import FileError, InputError, ParseError
+from ..trajectory import _format_seconds, atomic_write_text
 
 HEADER = "label,start_s,end_s"
 #: The file the simulator writes into each sequence folder.
@@ -85,8 +86,6 @@ def read_segments(path: str | Path) -> list[tuple[str, int, int]]:
 
 def write_segments(path: str | Path, segments: Sequence[tuple[str, int, int]]) -> None:
     """Writes ``segments`` (``(label, start_ns, end_ns)``) as a segments file, atomically."""
-    from ..trajectory import atomic_write_text
-
     atomic_write_text(Path(path), segments_text(segments))
 
 
@@ -100,11 +99,5 @@ def segments_text(segments: Sequence[tuple[str, int, int]]) -> str:
                 f"got {(label, start, end)!r}",
                 field="segments",
             )
-        lines.append(f"{label},{_ns_text(start)},{_ns_text(end)}")
+        lines.append(f"{label},{_format_seconds(int(start))},{_format_seconds(int(end))}")
     return "\n".join(lines) + "\n"
-
-
-def _ns_text(t_ns: int) -> str:
-    sign = "-" if t_ns < 0 else ""
-    whole, frac = divmod(abs(int(t_ns)), _NS)
-    return f"{sign}{whole}.{frac:09d}"

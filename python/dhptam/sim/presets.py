@@ -185,8 +185,7 @@ def lighting_segments(profile: str, duration_s: float) -> list[tuple[str, int, i
     from .. import _core
     from ..errors import InputError
 
-    if profile not in PROFILES:
-        raise InputError(f"unknown profile {profile!r}; choose one of {', '.join(PROFILES)}", field="profile")
+    # The core checks the profile's name (InputError, field "lighting profile").
     if not duration_s > 0:
         raise InputError(f"duration must be positive, got {duration_s}", field="duration")
     return [
