@@ -45,6 +45,7 @@ def test_run_tracks_every_frame_within_the_stated_ate(mode: str, sim_desk_run: P
     # No lighting change either: no flood window, no predicted frame.
     assert result.tracking == {
         "bridges": 0, "bridges_refused": 0, "segments": 0, "relocalisations": 0, "predicted": 0,
+        "implausible": 0,
     }  # fmt: skip
     assert ev.coverage > 0.9
     # Every promised file is there and readable.

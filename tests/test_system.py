@@ -73,6 +73,25 @@ def test_written_trajectory_is_smoothed_by_each_frames_covariance() -> None:
         dhptam.Config.from_toml("[tracking]\nsmoothing_q = -1")
 
 
+def test_a_pose_that_jumps_away_from_the_motion_model_is_rejected() -> None:
+    # [tracking] max_jump_ratio: a tracked pose farther from the constant-velocity prediction
+    # than that fraction of its inliers' median depth goes on to relocalisation instead. The
+    # default never fires on ordinary motion; a bound of a micrometre per metre fires on every
+    # frame tracked from a valid motion model, and each is relocalised (or starts a segment).
+    frames = generate(frames=40, turns=0.1, landmarks=1500, seed=4)
+    assert run(frames).tracking_totals()["implausible"] == 0
+    strict = dhptam.System(
+        CALIB, dhptam.Config.from_toml("[tracking]\nmax_jump_ratio = 1e-6"), threaded=False
+    )
+    states = [strict.track(f.t_ns, f.left, f.right).state for f in frames]
+    totals = strict.tracking_totals()
+    assert totals["implausible"] >= 30, totals
+    assert totals["implausible"] == totals["relocalisations"] + totals["segments"] + states.count("lost")
+    assert len(strict.trajectory()[0]) == len(frames) - states.count("lost")
+    with pytest.raises(dhptam.ConfigError, match="max_jump_ratio"):
+        dhptam.Config.from_toml("[tracking]\nmax_jump_ratio = -0.5")
+
+
 def test_binary_descriptors_track() -> None:
     frames = generate(frames=60, turns=0.15, binary=True, seed=2)
     system = run(frames)
@@ -299,7 +318,14 @@ def test_bridge_keyframes_keep_one_map_across_an_appearance_switch() -> None:
     assert states[1:].count("initialised") == 0, states
     assert "lost" not in states
     totals = system.tracking_totals()
-    assert totals == {"bridges": 2, "bridges_refused": 0, "segments": 0, "relocalisations": 0, "predicted": 0}
+    assert totals == {
+        "bridges": 2,
+        "bridges_refused": 0,
+        "segments": 0,
+        "relocalisations": 0,
+        "predicted": 0,
+        "implausible": 0,
+    }
     assert ate(positions(system), truth) < 0.03
     # The same switches without bridges start two new segments.
     off = dhptam.System(CALIB, None, threaded=False)
@@ -429,7 +455,14 @@ def test_a_bridge_spans_predicted_frames_between_two_appearances() -> None:
     assert states[40:43] == ["predicted"] * 3
     assert states[1:].count("initialised") == 0 and "lost" not in states, states
     totals = system.tracking_totals()
-    assert totals == {"bridges": 2, "bridges_refused": 0, "segments": 0, "relocalisations": 0, "predicted": 3}
+    assert totals == {
+        "bridges": 2,
+        "bridges_refused": 0,
+        "segments": 0,
+        "relocalisations": 0,
+        "predicted": 3,
+        "implausible": 0,
+    }
     assert len(system.trajectory()[0]) == 80
     assert ate(positions(system), truth) < 0.03
     # The bridge keyframe sits at frame 39's pose, not at the last predicted frame's (three

@@ -76,7 +76,8 @@ class RunResult:
     files: dict[str, Path] = field(default_factory=dict)
     tracking: dict[str, int] = field(default_factory=dict)
     """Bridge keyframes at fusion-mode switches (``bridges``, ``bridges_refused``), new map
-    ``segments``, ``relocalisations`` and flood frames ``predicted`` instead of tracked
+    ``segments``, ``relocalisations``, flood frames ``predicted`` instead of tracked and
+    ``implausible`` tracked poses rejected for jumping away from the motion model
     (``dhptam.System.tracking_totals``)."""
 
     @property

@@ -181,8 +181,9 @@ class System:
 
     def tracking_totals(self) -> dict[str, int]:
         """Since the start: ``bridges`` inserted, ``bridges_refused``, new map ``segments``
-        (started at the constant-velocity pose), ``relocalisations`` and ``predicted`` frames
-        (:meth:`predict`)."""
+        (started at the constant-velocity pose), ``relocalisations``, ``predicted`` frames
+        (:meth:`predict`) and ``implausible`` tracked poses, rejected for jumping away from the
+        motion model's prediction (``[tracking] max_jump_ratio``)."""
         return self._core.tracking_totals()
 
     def tracked_depth(self) -> float | None:

@@ -351,6 +351,18 @@ config_section! {
         min_matches: u32 = 50,
         /// Fewer inliers than this after refinement: the frame is lost.
         min_tracked: u32 = 15,
+        /// A tracked pose whose camera centre lies farther from the constant-velocity
+        /// prediction than this fraction of the median depth of its inlier points is
+        /// rejected as implausible, and the frame goes on to relocalisation like one with too
+        /// few inliers; 0 turns the check off. Between two frames that still see the same
+        /// map points the camera moves a small part of their distance: the fastest simulated
+        /// trajectory (the whole ecd_poster_6dof, 20 Hz) departs from constant velocity by
+        /// at most 0.03–0.06 of the scene depth per frame, while poses tracked there on 15–40
+        /// wrongly matched inliers jumped by up to the whole depth (docs/BENCHMARKS.md, "A
+        /// tracked pose that jumps away from the motion model"). The bound is per frame:
+        /// departures grow with the square of the frame interval, so for frame rates well
+        /// under 10 Hz raise it.
+        max_jump_ratio: f64 = 0.25,
         /// Map points seen under a larger angle from their mean viewing direction are not
         /// searched, degrees.
         max_view_angle_deg: f64 = 60.0,
@@ -583,6 +595,12 @@ impl TrackingConfig {
             self.min_tracked >= 6,
             "at least 6",
             self.min_tracked,
+        )?;
+        check(
+            "tracking.max_jump_ratio",
+            self.max_jump_ratio.is_finite() && self.max_jump_ratio >= 0.0,
+            "a finite fraction >= 0 (0: off)",
+            self.max_jump_ratio,
         )?;
         check(
             "tracking.refine_iterations",

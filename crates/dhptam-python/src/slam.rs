@@ -259,6 +259,7 @@ impl PySystem {
         d.set_item("segments", t.segments)?;
         d.set_item("relocalisations", t.relocalisations)?;
         d.set_item("predicted", t.predicted)?;
+        d.set_item("implausible", t.implausible)?;
         Ok(d)
     }
 

@@ -15,7 +15,7 @@ use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
     bootstrap, bridge_keyframe, commit_tracked, constant_velocity_prediction, last_pose,
     predict_only, reference_motion, reference_pose, reinitialise, retrack_after_correction,
-    stereo_match, track_local_map, Bridge, StereoFrame, TrackContext, TrackerState,
+    stereo_match, track_local_map, Bridge, StereoFrame, TrackContext, Tracked, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -250,6 +250,9 @@ pub struct TrackingTotals {
     pub relocalisations: u64,
     /// Frames moved on by the motion model without being tracked ([`System::predict`]).
     pub predicted: u64,
+    /// Tracked poses rejected for jumping away from the constant-velocity prediction
+    /// (`[tracking] max_jump_ratio`); each such frame went on to relocalisation.
+    pub implausible: u64,
 }
 
 /// The mapping thread logs the map's size (INFO) after every this many keyframe ids.
@@ -289,6 +292,31 @@ fn median_point_depth(
     let mid = z.len() / 2;
     let (_, m, _) = z.select_nth_unstable_by(mid, f64::total_cmp);
     Some(*m)
+}
+
+/// How far a tracked pose jumped from the motion model's prediction.
+struct Jump {
+    distance_m: f64,
+    depth_m: f64,
+    inliers: usize,
+}
+
+/// The jump of `tracked`'s camera centre from the one `predicted` (`cam_from_world`) places,
+/// when it exceeds `ratio` times the median depth of the tracked inliers; `None` when it
+/// does not, when `ratio` is 0 (off) or when no inlier lies in front of the camera.
+fn implausible_jump(map: &Map, tracked: &Tracked, predicted: &Se3, ratio: f64) -> Option<Jump> {
+    if ratio <= 0.0 {
+        return None;
+    }
+    let inliers = tracked.matches.iter().flatten().copied();
+    let depth_m = median_point_depth(map, &tracked.cam_from_world, inliers)?;
+    let centre = tracked.cam_from_world.inverse().translation;
+    let distance_m = (centre - predicted.inverse().translation).norm();
+    (distance_m > ratio * depth_m).then_some(Jump {
+        distance_m,
+        depth_m,
+        inliers: tracked.inliers,
+    })
 }
 
 fn mapping_worker(shared: Arc<Shared>, rx: Receiver<u64>, loops: SyncSender<u64>) {
@@ -557,19 +585,38 @@ impl System {
             let mut map = write_lock(&shared.map);
             bootstrap(&mut map, &mut self.state, &frame, &ctx)
         } else {
-            let (tracked, previous, predicted, corrections, reference) = {
-                let map = read_lock(&shared.map);
-                let (previous, predicted) = constant_velocity_prediction(&map, &self.state);
-                let tracked = shared.time("track_local_map", || {
-                    track_local_map(&map, &self.state, &frame, &ctx, predicted)
-                });
-                let reference = reference_pose(&map, &self.state);
-                (tracked, previous, predicted, map.corrections, reference)
-            };
             // After a loss the motion model is stale (the last pose is frames old): picking
             // the track up again from it needs the evidence a relocalisation needs, and the
             // velocity restarts (the step to the last pose spans the lost frames).
             let reacquired = self.state.lost;
+            let (tracked, previous, predicted, corrections, reference) = {
+                let map = read_lock(&shared.map);
+                let (previous, predicted) = constant_velocity_prediction(&map, &self.state);
+                let mut tracked = shared.time("track_local_map", || {
+                    track_local_map(&map, &self.state, &frame, &ctx, predicted)
+                });
+                // A stale motion model (after a loss) predicts nothing to compare with.
+                if previous.is_some() && !reacquired {
+                    if let Some(jump) = tracked
+                        .as_ref()
+                        .and_then(|t| implausible_jump(&map, t, &predicted, ctx.cfg.max_jump_ratio))
+                    {
+                        self.totals.implausible += 1;
+                        log::info!(
+                            "tracking: pose at t={t_ns} ns rejected: {:.3} m from the motion \
+                             model's prediction, {:.2} × the median depth {:.2} m of its {} \
+                             inliers",
+                            jump.distance_m,
+                            jump.distance_m / jump.depth_m,
+                            jump.depth_m,
+                            jump.inliers
+                        );
+                        tracked = None;
+                    }
+                }
+                let reference = reference_pose(&map, &self.state);
+                (tracked, previous, predicted, map.corrections, reference)
+            };
             let needed = if reacquired {
                 ctx.cfg.min_tracked.max(c.loop_closing.min_inliers)
             } else {
