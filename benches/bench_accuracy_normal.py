@@ -2,7 +2,8 @@
 
 For every trajectory file (``*.csv`` / ``*.tum``) of the folder ``--trajectories`` (default:
 ``$DHPTAM_SHARED/data/trajectories``, else ``../shared/data/trajectories`` beside the
-repository) the simulator renders the first ``--duration`` seconds of the trajectory, fitted
+repository) the simulator renders the first ``--duration`` seconds of the trajectory (all of
+it when the file is shorter: ``--duration 60`` simulates both shipped trajectories whole), fitted
 into the desk room, with the small rig (320×320 frames, 320×180 events) under normal lighting
 (the ``desk`` preset with the file's motion; ``--preset tumvie-desk`` for the TUM-VIE-size rig,
 1024×1024 frames and 1280×720 events). Each sequence is generated once into the dhptam cache
@@ -55,7 +56,12 @@ def main() -> int:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--trajectories", type=Path, default=default_trajectories())
-    parser.add_argument("--duration", type=float, default=4.0, help="seconds of each trajectory (default 4)")
+    parser.add_argument(
+        "--duration",
+        type=float,
+        default=4.0,
+        help="seconds of each trajectory (default 4; a trajectory shorter than this is simulated whole)",
+    )
     parser.add_argument("--seed", type=int, default=1, help="simulator seed (default 1)")
     parser.add_argument(
         "--preset",
@@ -99,7 +105,8 @@ def main() -> int:
     kind = "" if args.preset == "desk" else f"{args.preset}-"
     root = cache_dir() / "sequences" / f"normal-{kind}seed{args.seed}-{args.duration:g}s"
     lines = [
-        f"Sequences: first {args.duration:g} s of each trajectory, `{args.preset}` preset (normal "
+        f"Sequences: first {args.duration:g} s of each trajectory (all of it where it is shorter), "
+        f"`{args.preset}` preset (normal "
         f"lighting), seed {args.seed}, features {args.features}, "
         f"configuration {args.config or 'default'}, "
         f"keypoint σ {args.keypoint_sigma or 'default'}; "
