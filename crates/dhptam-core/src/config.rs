@@ -381,6 +381,12 @@ config_section! {
         /// event-dominated images); the old keyframes stay for relocalisation and loop
         /// closing. Off: the system stays lost until relocalisation succeeds.
         reinitialise: bool = true,
+        /// When a frame right after a tracked one is not tracked from the motion model and
+        /// none of the place query's candidates relocalises it, relocalisation also tries the
+        /// last frame's reference keyframe (PnP against its map points) before the frame
+        /// starts a new map segment. Off: the place query's candidates only
+        /// (docs/BENCHMARKS.md, "Relocalisation against the reference keyframe").
+        relocalise_reference: bool = true,
         /// Frames whose mean motion is the velocity of predicted (untracked) frames
         /// (`System::predict`, across illumination floods): the motion between the last
         /// measured frame and the one this many frames before it, taken to the 1/n power; 1

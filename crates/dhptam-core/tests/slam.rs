@@ -1257,3 +1257,46 @@ fn a_pose_far_from_the_motion_model_is_rejected_and_relocalised() {
         .to_string();
     assert!(err.contains("max_jump_ratio"), "{err}");
 }
+
+#[test]
+fn a_frame_the_motion_model_misses_is_relocalised_against_its_reference_keyframe() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 30,
+        turns: 0.1,
+        seed: 5,
+        pixel_noise: 0.5,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    // Every pose tracked from the motion model is rejected (a bound of a micrometre per metre
+    // of depth), and the place query proposes nothing (no candidates): only the reference
+    // keyframe can pick a frame up.
+    let run = |reference: bool| {
+        let mut config = Config::default();
+        config.tracking.max_jump_ratio = 1e-6;
+        config.tracking.relocalise_reference = reference;
+        config.loop_closing.candidates = 0;
+        let mut system = System::new(o.calib, config, false).unwrap();
+        let states: Vec<TrackState> = frames.iter().map(|f| track(&mut system, f).state).collect();
+        (system.tracking_totals(), states, system)
+    };
+    let (on, states, system) = run(true);
+    assert!(on.implausible >= 25, "{on:?}");
+    assert_eq!(on.relocalisations, on.implausible, "{on:?}");
+    assert_eq!(on.segments, 0, "{on:?}");
+    assert!(
+        states[1..].iter().all(|s| *s == TrackState::Relocalised),
+        "{states:?}"
+    );
+    let truth: Vec<Vector3<f64>> = frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect();
+    let error = ate(&positions(&system.trajectory()), &truth);
+    assert!(error < 0.02, "ATE {error} m");
+    // Off: nothing picks the frames up, and each starts a new map segment.
+    let (off, _, _) = run(false);
+    assert_eq!(off.relocalisations, 0, "{off:?}");
+    assert_eq!(off.segments, off.implausible, "{off:?}");
+}

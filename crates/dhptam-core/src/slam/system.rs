@@ -793,8 +793,10 @@ impl System {
         })
     }
 
-    /// Place query with the frame's embedding, PnP verification, then tracking against the
-    /// matched keyframe's local map from the PnP pose.
+    /// PnP verification against candidate keyframes, then tracking against the matched
+    /// keyframe's local map from the PnP pose. The candidates: the place query's with the
+    /// frame's embedding, then, when the previous frame was tracked, its reference keyframe
+    /// (`[tracking] relocalise_reference`).
     fn relocalise(
         &self,
         frame: &StereoFrame,
@@ -802,13 +804,25 @@ impl System {
     ) -> Option<(super::tracking::Tracked, u64)> {
         let cfg = &self.shared.config.loop_closing;
         let e = crate::place::embedding(frame.descriptors)?;
-        let candidates = lock(&self.shared.place).query(
-            &e,
-            cfg.candidates as usize,
-            cfg.min_score as f32,
-            |_| false,
-        );
+        let mut candidates: Vec<(u64, Option<f32>)> = lock(&self.shared.place)
+            .query(&e, cfg.candidates as usize, cfg.min_score as f32, |_| false)
+            .into_iter()
+            .map(|(c, score)| (c, Some(score)))
+            .collect();
         let map = read_lock(&self.shared.map);
+        // Before the frame starts a new map segment: the motion model missed, but the
+        // camera is most likely still near the last tracked frame, so its reference keyframe
+        // is tried whatever its place score (the query need not rank it among its few
+        // candidates, e.g. when a fast turn blurs the event images). It comes last: a
+        // candidate the query found is an older, better-anchored part of the map.
+        if let Some(r) = self.state.reference.filter(|r| {
+            ctx.cfg.relocalise_reference
+                && !self.state.lost
+                && map.keyframes.contains_key(r)
+                && candidates.iter().all(|(c, _)| c != r)
+        }) {
+            candidates.push((r, None));
+        }
         for (c, score) in candidates {
             let v = verify(
                 &map,
@@ -832,8 +846,12 @@ impl System {
             let tracked = track_local_map(&map, &state, frame, ctx, m.cam_from_world)
                 .filter(|t| t.inliers >= ctx.cfg.min_tracked as usize);
             if let Some(t) = tracked {
+                let how = match score {
+                    Some(score) => format!("score {score:.3}"),
+                    None => "the reference keyframe".to_owned(),
+                };
                 log::info!(
-                    "tracking: relocalised at t={} ns against keyframe {c} (score {score:.3}, {} inliers)",
+                    "tracking: relocalised at t={} ns against keyframe {c} ({how}, {} inliers)",
                     frame.t_ns,
                     t.inliers
                 );
