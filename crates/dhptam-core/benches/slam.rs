@@ -16,7 +16,7 @@ use std::sync::{Mutex, RwLock};
 
 use criterion::{criterion_group, criterion_main, BatchSize, Criterion};
 use dhptam_core::config::Config;
-use dhptam_core::matching::Descriptors;
+use dhptam_core::matching::{best_two, Descriptors};
 use dhptam_core::place::{embedding, PlaceDatabase};
 use dhptam_core::slam::loop_closing::detect_and_close;
 use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
@@ -234,5 +234,37 @@ fn loops(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, tracking, loops);
+/// Nearest two of 10 000 binary 256-bit descriptors (ORB's size) for each of 1000 queries, one
+/// thread: the brute-force search relocalisation and loop verification run against a
+/// keyframe's neighbourhood of map points.
+fn matching(c: &mut Criterion) {
+    // A fixed xorshift stream: the same bytes every run.
+    let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+    let mut bytes = |n: usize| -> Vec<u8> {
+        (0..n)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                state as u8
+            })
+            .collect()
+    };
+    let (queries, train) = (bytes(1000 * 32), bytes(10_000 * 32));
+    let queries = Descriptors::binary(&queries, 32).unwrap();
+    let train = Descriptors::binary(&train, 32).unwrap();
+    let mut g = c.benchmark_group("matching");
+    g.sample_size(20);
+    g.bench_function("best_two_orb_1000_against_10000", |b| {
+        b.iter(|| {
+            (0..queries.len())
+                .filter_map(|i| best_two(queries.row(i), train, 0..train.len()))
+                .map(|(j, _, _)| j)
+                .sum::<usize>()
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, tracking, loops, matching);
 criterion_main!(benches);

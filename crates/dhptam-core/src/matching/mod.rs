@@ -82,6 +82,7 @@ impl OwnedDescriptor {
 
 /// Euclidean distance between float rows, Hamming distance (bits) between binary rows;
 /// `f32::INFINITY` when the kinds or widths differ, so a mismatch never matches.
+#[inline(always)]
 pub fn distance(a: Descriptor<'_>, b: Descriptor<'_>) -> f32 {
     match (a, b) {
         (Descriptor::Float(a), Descriptor::Float(b)) if a.len() == b.len() => l2(a, b),
@@ -90,6 +91,7 @@ pub fn distance(a: Descriptor<'_>, b: Descriptor<'_>) -> f32 {
     }
 }
 
+#[inline(always)]
 fn l2(a: &[f32], b: &[f32]) -> f32 {
     // Four independent accumulators let the compiler keep several lanes busy.
     let mut acc = [0.0f32; 4];
@@ -105,6 +107,7 @@ fn l2(a: &[f32], b: &[f32]) -> f32 {
     (acc[0] + acc[1] + acc[2] + acc[3] + tail).sqrt()
 }
 
+#[inline(always)]
 fn hamming(a: &[u8], b: &[u8]) -> f32 {
     let (ca, ra) = a.split_at(a.len() & !7);
     let (cb, rb) = b.split_at(ca.len());
@@ -364,15 +367,83 @@ pub struct Match {
 /// The nearest and second-nearest train rows to `query` among `candidates`:
 /// `(best index, best distance, second distance)`, the second `f32::INFINITY` when there is
 /// one candidate; `None` when there are none.
+///
+/// On x86-64 CPUs with POPCNT (every one since about 2008) the search runs in a copy compiled
+/// for it, so the Hamming distances of binary descriptors count bits in one instruction per
+/// 64 bits; the portable build's baseline has no such instruction.
 pub fn best_two<I: IntoIterator<Item = usize>>(
     query: Descriptor<'_>,
     train: Descriptors<'_>,
     candidates: I,
 ) -> Option<(usize, f32, f32)> {
+    #[cfg(target_arch = "x86_64")]
+    if matches!(query, Descriptor::Binary(_)) && std::arch::is_x86_feature_detected!("popcnt") {
+        // SAFETY: the CPU supports POPCNT, checked just above.
+        return unsafe { best_two_popcnt(query, train, candidates) };
+    }
+    best_two_plain(query, train, candidates)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "popcnt")]
+unsafe fn best_two_popcnt<I: IntoIterator<Item = usize>>(
+    query: Descriptor<'_>,
+    train: Descriptors<'_>,
+    candidates: I,
+) -> Option<(usize, f32, f32)> {
+    best_two_plain(query, train, candidates)
+}
+
+#[inline(always)]
+fn best_two_plain<I: IntoIterator<Item = usize>>(
+    query: Descriptor<'_>,
+    train: Descriptors<'_>,
+    candidates: I,
+) -> Option<(usize, f32, f32)> {
+    match (query, train) {
+        // 256-bit rows (ORB): the query's four words loaded once, each train row's read
+        // straight from the block (the `matching` criterion bench, docs/BENCHMARKS.md).
+        (Descriptor::Binary(q), Descriptors::Binary { bytes: 32, data }) if q.len() == 32 => {
+            let w = words(q);
+            nearest_two(candidates, |j| {
+                let r = words(&data[j * 32..(j + 1) * 32]);
+                ((w[0] ^ r[0]).count_ones()
+                    + (w[1] ^ r[1]).count_ones()
+                    + (w[2] ^ r[2]).count_ones()
+                    + (w[3] ^ r[3]).count_ones()) as f32
+            })
+        }
+        // Other binary widths, likewise straight from the block's bytes.
+        (Descriptor::Binary(q), Descriptors::Binary { bytes, data }) if q.len() == bytes => {
+            nearest_two(candidates, |j| {
+                hamming(q, &data[j * bytes..(j + 1) * bytes])
+            })
+        }
+        _ => nearest_two(candidates, |j| distance(query, train.row(j))),
+    }
+}
+
+/// A 256-bit row as four little-endian words.
+#[inline(always)]
+fn words(row: &[u8]) -> [u64; 4] {
+    let word = |k: usize| {
+        let mut b = [0u8; 8];
+        b.copy_from_slice(&row[8 * k..8 * k + 8]);
+        u64::from_le_bytes(b)
+    };
+    [word(0), word(1), word(2), word(3)]
+}
+
+/// The two smallest of `distance(j)` over `candidates`, as [`best_two`] returns them.
+#[inline(always)]
+fn nearest_two<I: IntoIterator<Item = usize>>(
+    candidates: I,
+    distance: impl Fn(usize) -> f32,
+) -> Option<(usize, f32, f32)> {
     let mut best: Option<(usize, f32)> = None;
     let mut second = f32::INFINITY;
     for j in candidates {
-        let d = distance(query, train.row(j));
+        let d = distance(j);
         match best {
             Some((_, b)) if d >= b => second = second.min(d),
             Some((_, b)) => {
@@ -595,6 +666,47 @@ mod tests {
         let (j, _, s) = best_two(q, t, [3]).unwrap();
         assert_eq!((j, s), (3, f32::INFINITY));
         assert!(best_two(q, t, []).is_none());
+    }
+
+    #[test]
+    fn binary_best_two_agrees_with_the_bit_count_at_every_width() {
+        // 256-bit rows take their own path (and POPCNT where the CPU has it); every width
+        // must give the nearest two by a plain count of differing bits, the first candidate
+        // on ties.
+        let mut state = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for bytes in [32usize, 8, 13, 64] {
+            let rows = 300;
+            let train: Vec<u8> = (0..rows * bytes).map(|_| next() as u8).collect();
+            let t = Descriptors::binary(&train, bytes).unwrap();
+            for _ in 0..20 {
+                let q: Vec<u8> = (0..bytes).map(|_| next() as u8).collect();
+                let bits = |j: usize| -> u32 {
+                    q.iter()
+                        .zip(&train[j * bytes..(j + 1) * bytes])
+                        .map(|(a, b)| (a ^ b).count_ones())
+                        .sum()
+                };
+                let mut order: Vec<(u32, usize)> = (0..rows).map(|j| (bits(j), j)).collect();
+                order.sort();
+                let got = best_two(Descriptor::Binary(&q), t, 0..rows).unwrap();
+                assert_eq!(
+                    got,
+                    (order[0].1, order[0].0 as f32, order[1].0 as f32),
+                    "{bytes} bytes"
+                );
+                // A subset of candidates, in a given order: the first of the nearest wins.
+                let some = [7usize, 3, 250, 3];
+                let least = some.iter().map(|&j| bits(j)).min().unwrap();
+                let first = some.into_iter().find(|&j| bits(j) == least).unwrap();
+                assert_eq!(best_two(Descriptor::Binary(&q), t, some).unwrap().0, first);
+            }
+        }
     }
 
     #[test]
