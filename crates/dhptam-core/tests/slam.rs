@@ -19,7 +19,7 @@ use dhptam_core::slam::{
 use nalgebra::Vector3;
 
 mod common;
-use common::{ate, positions, track};
+use common::{ate, positions, track, truth_positions};
 
 #[test]
 fn tracks_every_frame_of_a_noisy_sequence_with_outliers() {
@@ -42,10 +42,7 @@ fn tracks_every_frame_of_a_noisy_sequence_with_outliers() {
     }
     let traj = system.trajectory();
     assert_eq!(traj.len(), frames.len());
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(&frames);
     let e = ate(&positions(&traj), &truth);
     let kfs = system.keyframe_trajectory().len();
     eprintln!(
@@ -155,10 +152,7 @@ fn threaded_stress_and_prompt_shutdown() {
     assert!(traj
         .iter()
         .all(|(_, p)| p.matrix().iter().all(|v| v.is_finite())));
-    let truth: Vec<Vector3<f64>> = frames[..tracked]
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(&frames[..tracked]);
     let e = ate(&positions(&traj), &truth);
     eprintln!("threaded ATE {e:.4} m over {tracked} frames");
     assert!(e < 0.1, "ATE {e}");
@@ -183,10 +177,7 @@ fn run_loop(frames: &[SyntheticFrame], o: &SyntheticOptions, closing: bool) -> (
         let r = track(&mut system, f);
         assert_ne!(r.state, TrackState::Lost, "frame {} lost", f.t_ns);
     }
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(frames);
     (ate(&positions(&system.trajectory()), &truth), system)
 }
 
@@ -635,10 +626,7 @@ fn run_with_glitch(
             restarts += 1;
         }
     }
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(frames);
     (
         ate(&positions(&system.trajectory()), &truth),
         system,
@@ -780,10 +768,7 @@ fn run_with_switches(
             assert!(b.linked >= 50 && b.other_points >= 50, "{b:?}");
         }
     }
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(frames);
     (
         ate(&positions(&system.trajectory()), &truth),
         system,
@@ -936,10 +921,7 @@ fn a_bridge_spans_predicted_frames() {
         )
         .unwrap()
         .is_none());
-    let truth: Vec<Vector3<f64>> = frames[..60]
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(&frames[..60]);
     let error = ate(&positions(&system.trajectory()), &truth);
     assert!(error < 0.03, "ATE {error} m");
 }
@@ -1153,10 +1135,7 @@ fn run_noisy(pixel_noise: f64, q: f64) -> (System, Vec<Vector3<f64>>, f64) {
     for f in &frames {
         track(&mut system, f);
     }
-    let truth = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(&frames);
     let traces: Vec<f64> = system.with_map(|map| {
         map.trajectory
             .iter()
@@ -1230,10 +1209,7 @@ fn a_pose_far_from_the_motion_model_is_rejected_and_relocalised() {
     let (totals, lost, system) = run(Config::default().tracking.max_jump_ratio);
     assert_eq!(totals.implausible, 0, "{totals:?}");
     assert_eq!(lost, 0);
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(&frames);
     let error = ate(&positions(&system.trajectory()), &truth);
     assert!(error < 0.02, "ATE {error} m");
     // Off: the same run.
@@ -1289,10 +1265,7 @@ fn a_frame_the_motion_model_misses_is_relocalised_against_its_reference_keyframe
         states[1..].iter().all(|s| *s == TrackState::Relocalised),
         "{states:?}"
     );
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(&frames);
     let error = ate(&positions(&system.trajectory()), &truth);
     assert!(error < 0.02, "ATE {error} m");
     // Off: nothing picks the frames up, and each starts a new map segment.

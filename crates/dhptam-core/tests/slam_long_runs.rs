@@ -11,7 +11,7 @@ use dhptam_core::slam::{
 use nalgebra::Vector3;
 
 mod common;
-use common::{ate, track};
+use common::{ate, track, truth_positions};
 
 /// Asserts the map is consistent and the place database holds exactly its keyframes.
 fn assert_consistent(system: &System) {
@@ -44,10 +44,7 @@ fn run(frames: &[SyntheticFrame], calib_from: &SyntheticOptions, config: Config)
         "frames missing from the trajectory"
     );
     let estimated: Vec<Vector3<f64>> = traj.iter().map(|(_, p)| p.translation).collect();
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(frames);
     let e = ate(&estimated, &truth);
     (system, e)
 }
@@ -365,10 +362,7 @@ fn saturated_mapping_and_loop_closing_shut_down_under_load() {
     assert!(system.culled_keyframes() > 0);
     assert_consistent(&system);
     let estimated: Vec<Vector3<f64>> = traj.iter().map(|(_, p)| p.translation).collect();
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(&frames);
     let e = ate(&estimated, &truth);
     eprintln!("ATE {e:.4} m");
     assert!(e < 0.1, "ATE {e} m");
@@ -395,10 +389,7 @@ fn laps(
     let traj = system.trajectory();
     assert_eq!(traj.len(), frames.len());
     let estimated: Vec<Vector3<f64>> = traj.iter().map(|(_, p)| p.translation).collect();
-    let truth: Vec<Vector3<f64>> = frames
-        .iter()
-        .map(|f| f.world_from_cam.translation)
-        .collect();
+    let truth = truth_positions(frames);
     let e = ate(&estimated, &truth);
     (system, counts, e)
 }

@@ -28,6 +28,14 @@ pub fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
     system.track(f.t_ns, left, right).unwrap()
 }
 
+/// The true camera centres of `frames`, in order (what [`ate`] compares a trajectory with).
+pub fn truth_positions(frames: &[SyntheticFrame]) -> Vec<Vector3<f64>> {
+    frames
+        .iter()
+        .map(|f| f.world_from_cam.translation)
+        .collect()
+}
+
 /// The rigid transform (rotation, translation) that best maps `estimated` onto `truth`
 /// (Horn/Umeyama without scale).
 pub fn align(estimated: &[Vector3<f64>], truth: &[Vector3<f64>]) -> (Matrix3<f64>, Vector3<f64>) {
