@@ -9,6 +9,8 @@ use std::sync::{Arc, Mutex, RwLock};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
+use nalgebra::Vector3;
+
 use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
@@ -179,6 +181,16 @@ impl Shared {
                 Err(e) => log::warn!("mapping: keyframe {kf}: fusion failed: {e}"),
             }
         }
+        // Debug log: how far the adjustment moved each keyframe (a weakly linked keyframe can
+        // slide far from where it was tracked).
+        let centres_before: Option<Vec<(u64, Vector3<f64>)>> = log::log_enabled!(log::Level::Debug)
+            .then(|| {
+                read_lock(&self.map)
+                    .keyframes
+                    .iter()
+                    .map(|(&k, v)| (k, v.world_from_cam.inverse().translation))
+                    .collect()
+            });
         let r = self.time("local_ba", || {
             local_mapping(
                 &self.map,
@@ -192,6 +204,18 @@ impl Shared {
         });
         if let Err(e) = r {
             log::warn!("mapping: keyframe {kf}: bundle adjustment failed: {e}");
+        }
+        if let Some(before) = centres_before {
+            let m = read_lock(&self.map);
+            let moved: Vec<String> = before
+                .iter()
+                .filter_map(|(k, c)| {
+                    let now = m.keyframes.get(k)?.world_from_cam.inverse().translation;
+                    let d = (now - c).norm();
+                    (d > 0.0).then(|| format!("{k}: {:.1} mm", 1e3 * d))
+                })
+                .collect();
+            log::debug!("mapping: keyframe {kf}: centres moved {}", moved.join(", "));
         }
         // Keyframe culling (issue 10), after the bundle adjustment; it is cheap (one pass over
         // the covisible keyframes' points under the write lock), so it runs even when a newer
@@ -595,6 +619,15 @@ impl System {
                 let mut tracked = shared.time("track_local_map", || {
                     track_local_map(&map, &self.state, &frame, &ctx, predicted)
                 });
+                if let Some(t) = tracked.as_ref() {
+                    let centre = t.cam_from_world.inverse().translation;
+                    log::debug!(
+                        "tracking: frame at t={t_ns} ns: {} inliers, centre {:.1} mm from the \
+                         motion model's prediction",
+                        t.inliers,
+                        1e3 * (centre - predicted.inverse().translation).norm()
+                    );
+                }
                 // A stale motion model (after a loss) predicts nothing to compare with.
                 if previous.is_some() && !reacquired {
                     if let Some(jump) = tracked
