@@ -1,4 +1,4 @@
-"""Accuracy on `normal`-lighting simulator sequences driven by real trajectories (issue #8).
+"""Accuracy on simulator sequences driven by real trajectories (issue #8).
 
 For every trajectory file (``*.csv`` / ``*.tum``) of the folder ``--trajectories`` (default:
 ``$DHPTAM_SHARED/data/trajectories``, else ``../shared/data/trajectories`` beside the
@@ -6,15 +6,18 @@ repository) the simulator renders the first ``--duration`` seconds of the trajec
 it when the file is shorter: ``--duration 60`` simulates both shipped trajectories whole), fitted
 into the desk room, with the small rig (320×320 frames, 320×180 events) under normal lighting
 (the ``desk`` preset with the file's motion; ``--preset tumvie-desk`` for the TUM-VIE-size rig,
-1024×1024 frames and 1280×720 events). Each sequence is generated once into the dhptam cache
-(``$DHPTAM_CACHE_DIR`` or ``~/.cache/dhptam``, under ``sequences/normal-seed<S>-<D>s/``, or
-``sequences/normal-<preset>-seed<S>-<D>s/`` for another preset) and reused. dhptam then runs
-on it in every mode and is evaluated against the simulator's ground truth (evo, SE(3)
-alignment, left frame camera). Prints a Markdown table for docs/BENCHMARKS.md and writes the
-runs, ``eval.json`` files and ``report.md`` under ``--out``.
+1024×1024 frames and 1280×720 events). ``--lighting hdr`` lights the same motion like the HDR
+demo instead (normal, dark, normal, saturated, normal, stretched over the duration, with the
+lighting floods between: the ``demo`` preset, or ``tumvie-hdr`` with ``--preset tumvie-desk``),
+and the table also gives each run's error per lighting level. Each sequence is generated once
+into the dhptam cache (``$DHPTAM_CACHE_DIR`` or ``~/.cache/dhptam``, under
+``sequences/<lighting>-seed<S>-<D>s/``, or ``sequences/<lighting>-<preset>-seed<S>-<D>s/`` for
+another preset) and reused. dhptam then runs on it in every mode and is evaluated against the
+simulator's ground truth (evo, SE(3) alignment, left frame camera). Prints a Markdown table for
+docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` under ``--out``.
 
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
-        [--features orb] [--preset desk|tumvie-desk]
+        [--features orb] [--preset desk|tumvie-desk] [--lighting normal|hdr]
         [--out bench-accuracy] [--sync] [--warp-depth plane|tracked|both]
         [--keypoint-sigma octave|unit]
 
@@ -67,7 +70,13 @@ def main() -> int:
         "--preset",
         choices=("desk", "tumvie-desk"),
         default="desk",
-        help="rig: desk (320-pixel, default) or tumvie-desk (TUM-VIE size); normal lighting",
+        help="rig: desk (320-pixel, default) or tumvie-desk (TUM-VIE size)",
+    )
+    parser.add_argument(
+        "--lighting",
+        choices=("normal", "hdr"),
+        default="normal",
+        help="normal (default) or hdr: the HDR demo's lighting profile over the duration",
     )
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
@@ -87,8 +96,8 @@ def main() -> int:
     )
     args = parser.parse_args()
 
-    from dhptam.demo import GROUND_TRUTH, cache_dir
-    from dhptam.eval import load_trajectory
+    from dhptam.demo import GROUND_TRUTH, cache_dir, lighting_of
+    from dhptam.eval import errors_by_segment, load_trajectory
     from dhptam.run import MODES
     from dhptam.sim import simulate
 
@@ -103,17 +112,22 @@ def main() -> int:
         parser.error(f"no .csv/.tum/.txt trajectory in {args.trajectories}")
 
     kind = "" if args.preset == "desk" else f"{args.preset}-"
-    root = cache_dir() / "sequences" / f"normal-{kind}seed{args.seed}-{args.duration:g}s"
+    root = cache_dir() / "sequences" / f"{args.lighting}-{kind}seed{args.seed}-{args.duration:g}s"
+    hdr = args.lighting == "hdr"
+    preset = {"desk": "demo", "tumvie-desk": "tumvie-hdr"}[args.preset] if hdr else args.preset
+    head = TABLE_HEAD
+    if hdr:
+        head = [TABLE_HEAD[0] + " normal / dark / bright light [mm] |", TABLE_HEAD[1] + "---|"]
     lines = [
         f"Sequences: first {args.duration:g} s of each trajectory (all of it where it is shorter), "
-        f"`{args.preset}` preset (normal "
+        f"`{preset}` preset ({args.lighting} "
         f"lighting), seed {args.seed}, features {args.features}, "
         f"configuration {args.config or 'default'}, "
         f"keypoint σ {args.keypoint_sigma or 'default'}; "
         f"{'synchronous' if args.sync else 'threaded'} mapping; "
         f"{platform.node()}, {os.cpu_count()} CPUs.",
         "",
-        *TABLE_HEAD,
+        *head,
     ]
     for path in files:
         name = path.stem
@@ -122,7 +136,7 @@ def main() -> int:
             print(f"simulating {name} into {sequence} (once; cached)", file=sys.stderr)
             simulate(
                 root,
-                preset=args.preset,
+                preset=preset,
                 name=name,
                 seed=args.seed,
                 duration_s=args.duration,
@@ -130,6 +144,7 @@ def main() -> int:
                 overwrite=True,
             )
         reference = load_trajectory(sequence / GROUND_TRUTH)
+        lighting = lighting_of(sequence, preset, reference) if hdr else []
         for mode in modes:
             # The warp depth only matters where events are warped.
             for warp in warps if mode != "frames" else warps[:1]:
@@ -147,7 +162,12 @@ def main() -> int:
                     config=config,
                     threaded=not args.sync,
                 )
-                lines.append(table_row(f"{name}, warp {warp}" if compared else name, mode, result, ev))
+                row = table_row(f"{name}, warp {warp}" if compared else name, mode, result, ev)
+                if hdr:
+                    parts = errors_by_segment(ev, lighting).values() if ev is not None else []
+                    split = " / ".join(f"{1000 * p.rmse_m:.1f}" if p.poses else "–" for p in parts)
+                    row += f" {split or '–'} |"
+                lines.append(row)
     return finish_table(lines, args.out)
 
 
