@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import re
 import threading
 import time
@@ -13,6 +14,7 @@ import pytest
 from slam_synthetic import CALIB, Frame, ate, generate
 
 import dhptam
+import dhptam.logs as dlogs
 from dhptam import SE3, features
 
 
@@ -90,6 +92,37 @@ def test_a_pose_that_jumps_away_from_the_motion_model_is_rejected() -> None:
     assert len(strict.trajectory()[0]) == len(frames) - states.count("lost")
     with pytest.raises(dhptam.ConfigError, match="max_jump_ratio"):
         dhptam.Config.from_toml("[tracking]\nmax_jump_ratio = -0.5")
+
+
+def test_debug_log_tells_how_far_each_frame_and_keyframe_moved(caplog, monkeypatch) -> None:
+    # At debug level the core logs, for each tracked frame, its camera centre's distance from
+    # the motion model's prediction, and after each local bundle adjustment how far it moved
+    # each keyframe's centre (the diagnostics of docs/BENCHMARKS.md, "HDR lighting on the real
+    # trajectories").
+    monkeypatch.delenv(dlogs.ENV_VAR, raising=False)
+    levels = {name: logging.getLogger(name).level for name in dlogs.LOGGER_NAMES}
+    caplog.set_level(logging.DEBUG, logger="dhptam_core")
+    dlogs.configure("debug", handler=logging.NullHandler())
+    try:
+        frames = generate(frames=40, turns=0.1, landmarks=1500, seed=4)
+        system = run(frames)
+    finally:
+        for name, level in levels.items():
+            logging.getLogger(name).setLevel(level)
+        dhptam._core._reset_log_cache()
+    text = "\n".join(r.getMessage() for r in caplog.records)
+    found = re.findall(r"centre ([0-9.]+) mm from the motion model's prediction", text)
+    distances = [float(d) for d in found]
+    # Every frame after the bootstrap, each a few millimetres off a smooth motion (metres if
+    # the distance were taken from anything else, such as the world origin).
+    assert len(distances) == len(frames) - 1
+    assert 0.0 < np.median(distances) < 10.0, distances
+    adjustments = re.findall(r"mapping: keyframe (\d+): keyframe centres moved: (.*)", text)
+    keyframes = len(system.keyframe_trajectory()[0])
+    assert [int(kf) for kf, _ in adjustments] == list(range(keyframes))
+    entries = [m for _, ms in adjustments if ms != "none" for m in ms.split(", ")]
+    moved = [re.fullmatch(r"(\d+): ([0-9.]+) mm", m) for m in entries]
+    assert moved and all(m is not None and int(m[1]) < keyframes for m in moved), adjustments
 
 
 def test_binary_descriptors_track() -> None:

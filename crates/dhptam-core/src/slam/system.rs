@@ -215,7 +215,12 @@ impl Shared {
                     (d > 0.0).then(|| format!("{k}: {:.1} mm", 1e3 * d))
                 })
                 .collect();
-            log::debug!("mapping: keyframe {kf}: centres moved {}", moved.join(", "));
+            let moved = if moved.is_empty() {
+                "none".to_owned()
+            } else {
+                moved.join(", ")
+            };
+            log::debug!("mapping: keyframe {kf}: keyframe centres moved: {moved}");
         }
         // Keyframe culling (issue 10), after the bundle adjustment; it is cheap (one pass over
         // the covisible keyframes' points under the write lock), so it runs even when a newer
