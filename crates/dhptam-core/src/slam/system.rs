@@ -188,7 +188,7 @@ impl Shared {
                 read_lock(&self.map)
                     .keyframes
                     .iter()
-                    .map(|(&k, v)| (k, v.world_from_cam.inverse().translation))
+                    .map(|(&k, v)| (k, v.centre()))
                     .collect()
             });
         let r = self.time("local_ba", || {
@@ -210,8 +210,7 @@ impl Shared {
             let moved: Vec<String> = before
                 .iter()
                 .filter_map(|(k, c)| {
-                    let now = m.keyframes.get(k)?.world_from_cam.inverse().translation;
-                    let d = (now - c).norm();
+                    let d = (m.keyframes.get(k)?.centre() - c).norm();
                     (d > 0.0).then(|| format!("{k}: {:.1} mm", 1e3 * d))
                 })
                 .collect();
@@ -330,6 +329,12 @@ struct Jump {
     inliers: usize,
 }
 
+/// Distance in metres between the camera centres of `tracked` and of the motion model's
+/// `predicted` `cam_from_world`.
+fn distance_from_prediction(tracked: &Tracked, predicted: &Se3) -> f64 {
+    (tracked.cam_from_world.inverse().translation - predicted.inverse().translation).norm()
+}
+
 /// The jump of `tracked`'s camera centre from the one `predicted` (`cam_from_world`) places,
 /// when it exceeds `ratio` times the median depth of the tracked inliers; `None` when it
 /// does not, when `ratio` is 0 (off) or when no inlier lies in front of the camera.
@@ -339,8 +344,7 @@ fn implausible_jump(map: &Map, tracked: &Tracked, predicted: &Se3, ratio: f64) -
     }
     let inliers = tracked.matches.iter().flatten().copied();
     let depth_m = median_point_depth(map, &tracked.cam_from_world, inliers)?;
-    let centre = tracked.cam_from_world.inverse().translation;
-    let distance_m = (centre - predicted.inverse().translation).norm();
+    let distance_m = distance_from_prediction(tracked, predicted);
     (distance_m > ratio * depth_m).then_some(Jump {
         distance_m,
         depth_m,
@@ -625,12 +629,11 @@ impl System {
                     track_local_map(&map, &self.state, &frame, &ctx, predicted)
                 });
                 if let Some(t) = tracked.as_ref() {
-                    let centre = t.cam_from_world.inverse().translation;
                     log::debug!(
                         "tracking: frame at t={t_ns} ns: {} inliers, centre {:.1} mm from the \
                          motion model's prediction",
                         t.inliers,
-                        1e3 * (centre - predicted.inverse().translation).norm()
+                        1e3 * distance_from_prediction(t, &predicted)
                     );
                 }
                 // A stale motion model (after a loss) predicts nothing to compare with.
