@@ -280,7 +280,13 @@ class _RecordingSystem:
         self.refuse = refuse
 
     def track(
-        self, t_ns: int, left: Any, right: Any, sigma_scale: float = 1.0, disparity: Any = (1.0, 0.0)
+        self,
+        t_ns: int,
+        left: Any,
+        right: Any,
+        sigma_scale: float = 1.0,
+        disparity: Any = (1.0, 0.0),
+        event_stereo: Any = None,
     ) -> Any:
         self.calls.append(("track", t_ns, left, right, sigma_scale, disparity))
         return type("R", (), {"state": "ok"})()
@@ -292,6 +298,7 @@ class _RecordingSystem:
         other: Any,
         sigma_scales: tuple[float, float] = (1.0, 1.0),
         disparities: Any = ((1.0, 0.0), (1.0, 0.0)),
+        event_stereo: Any = (None, None),
     ) -> Any:
         self.calls.append(("bridge", t_ns, primary, other, sigma_scales, disparities))
         return None if self.refuse else object()

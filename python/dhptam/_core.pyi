@@ -372,6 +372,24 @@ class EventRectifier:
     def masked_count(self) -> int: ...
 
 @final
+class EventStereo:
+    """Reads stereo matches of event images warped into the rectified frame cameras as the
+    frame cameras would have measured them (triangulated with the event cameras)."""
+
+    def __new__(
+        cls,
+        k_event: npt.ArrayLike,
+        event_baseline_m: float,
+        k_frame: npt.ArrayLike,
+        frame_baseline_m: float,
+        frame_from_event_left: SE3,
+        frame_from_event_right: SE3,
+        depth_m: float,
+        align_px: tuple[float, float] = ...,  # (0.0, 0.0)
+    ) -> EventStereo: ...
+    def frame_readings(self, matches: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]: ...
+
+@final
 class HotPixels:
     """Running detector of the hot pixels of one event camera (raw pixels)."""
 
@@ -430,6 +448,7 @@ class PySystem:
         left_sigmas: npt.NDArray[np.float32] | None = None,
         sigma_scale: float = 1.0,
         disparity: tuple[float, float] = ...,  # (1.0, 0.0)
+        event_stereo: EventStereo | None = None,
     ) -> tuple[_FloatArray, str, int, bool]: ...
     # Predicted (untracked) frames across illumination floods (issue 8, accuracy).
     def predict(self, t_ns: int) -> tuple[_FloatArray, str, int, bool]: ...
@@ -451,6 +470,8 @@ class PySystem:
         other_sigma_scale: float = 1.0,
         disparity: tuple[float, float] = ...,  # (1.0, 0.0)
         other_disparity: tuple[float, float] = ...,  # (1.0, 0.0)
+        event_stereo: EventStereo | None = None,
+        other_event_stereo: EventStereo | None = None,
     ) -> tuple[int, int, int] | None: ...
     def refine_map(self, iterations: int) -> dict[str, int]: ...
     def tracking_totals(self) -> dict[str, int]: ...

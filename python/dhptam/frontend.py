@@ -303,6 +303,8 @@ class Frontend:
         self.warp_depth: str = str(fusion_cfg["warp_depth"])
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
         self.event_disparity_enabled: bool = bool(fusion_cfg["event_disparity"])
+        self.event_stereo_reading: str = str(fusion_cfg["event_stereo"])
+        self._event_stereo: dict[float, _core.EventStereo] = {}
         # Event counts (left + right) of the windows seen, by frame index (flood reference).
         self._window_counts: dict[int, int] = {}
         self.align_px: tuple[float, float] = (
@@ -644,6 +646,35 @@ class Frontend:
         depth = float(depth_m)
         offset = scale * float(self.frame_rect.K[0, 0]) * (b_e - b_f) / depth if depth > 0.0 else 0.0
         return (scale, offset)
+
+    def event_stereo(self, depth_m: float = 0.0) -> _core.EventStereo | None:
+        """The :class:`dhptam._core.EventStereo` that reads the stereo matches of the event
+        images warped through the plane at ``depth_m`` (0: infinity) as the frame cameras
+        would have measured them (``System.track``'s ``event_stereo``): both pixels unwarped
+        into the rectified event cameras, triangulated with the event pair, projected into
+        the rectified frame cameras. ``None`` in mode ``frames``, with ``[fusion]
+        event_disparity = false`` or ``event_stereo = "disparity"`` (then
+        :meth:`event_disparity` applies). Built once per depth."""
+        if self.mode == "frames" or not self.event_disparity_enabled:
+            return None
+        if self.event_stereo_reading != "exact":
+            return None
+        depth = float(depth_m)
+        reading = self._event_stereo.get(depth)
+        if reading is None:
+            ke, kf = self.event_rect.K, self.frame_rect.K
+            reading = _core.EventStereo(
+                [ke[0, 0], ke[1, 1], ke[0, 2], ke[1, 2]],
+                float(self.event_rect.baseline_m),
+                [kf[0, 0], kf[1, 1], kf[0, 2], kf[1, 2]],
+                float(self.frame_rect.baseline_m),
+                self.frame_from_event["left"],
+                self.frame_from_event["right"],
+                depth,
+                self.align_px,
+            )
+            self._event_stereo[depth] = reading
+        return reading
 
     def quantised_depth(self, depth_m: float | None, current: float | None = None) -> float:
         """``depth_m`` rounded to the inverse-depth bins of ``[fusion] warp_depth_step_px``

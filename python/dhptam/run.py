@@ -693,23 +693,30 @@ def _track_all(
 
 class ImageModel(NamedTuple):
     """How the tracker reads one image pair's features: the factor on its keypoint σ
-    (``System.track``'s ``sigma_scale``) and its disparity correction (``disparity``)."""
+    (``System.track``'s ``sigma_scale``), its disparity correction (``disparity``) and its
+    event-stereo reading (``event_stereo``, which replaces the disparity correction)."""
 
     sigma_scale: float = 1.0
     disparity: tuple[float, float] = (1.0, 0.0)
+    event_stereo: Any = None
 
 
 def _image_models(frontend: Any) -> Callable[[str, float], ImageModel]:
     """The :class:`ImageModel` of an image from its fusion bias and warp depth: DVS-biased
     images get ``[tracking] dvs_sigma_scale``, and event-dominated ones (``dvs``, ``events``)
-    the event cameras' disparity correction (:meth:`Frontend.event_disparity`)."""
+    are read through the event cameras' geometry (:meth:`Frontend.event_stereo`, or the
+    disparity correction :meth:`Frontend.event_disparity` with ``[fusion] event_stereo =
+    "disparity"``)."""
     dvs_sigma_scale = float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"])
 
     def model(bias: str, warp_depth_m: float) -> ImageModel:
-        return ImageModel(
-            dvs_sigma_scale if bias == "dvs" else 1.0,
-            frontend.event_disparity(warp_depth_m) if bias in ("dvs", "events") else (1.0, 0.0),
-        )
+        scale = dvs_sigma_scale if bias == "dvs" else 1.0
+        if bias not in ("dvs", "events"):
+            return ImageModel(scale)
+        reading = frontend.event_stereo(warp_depth_m)
+        if reading is not None:
+            return ImageModel(scale, event_stereo=reading)
+        return ImageModel(scale, frontend.event_disparity(warp_depth_m))
 
     return model
 
@@ -851,7 +858,13 @@ def _track_bridged(
     here = model(frame.bias, frame.warp_depth_m)
 
     def track(feats: tuple[Any, Any], m: ImageModel) -> Any:
-        return system.track(frame.t_ns, *feats, sigma_scale=m.sigma_scale, disparity=m.disparity)
+        return system.track(
+            frame.t_ns,
+            *feats,
+            sigma_scale=m.sigma_scale,
+            disparity=m.disparity,
+            event_stereo=m.event_stereo,
+        )
 
     def bridge_at(t_ns: int, primary: Any, a: ImageModel, secondary: Any, b: ImageModel) -> Any:
         return system.bridge(
@@ -860,6 +873,7 @@ def _track_bridged(
             secondary,
             sigma_scales=(a.sigma_scale, b.sigma_scale),
             disparities=(a.disparity, b.disparity),
+            event_stereo=(a.event_stereo, b.event_stereo),
         )
 
     if bridge is None:

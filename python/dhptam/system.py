@@ -114,13 +114,18 @@ class System:
         right: FeatureSet,
         sigma_scale: float = 1.0,
         disparity: tuple[float, float] = (1.0, 0.0),
+        event_stereo: _core.EventStereo | None = None,
     ) -> TrackResult:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds; ``sigma_scale``
         multiplies every keypoint σ of the frame (e.g. an event-dominated image).
         ``disparity`` ``(scale, offset_px)`` maps each stereo match's disparity ``d`` to the
         frame cameras' ``scale · d + offset_px``: identity for frames, and
         :meth:`dhptam.frontend.Frontend.event_disparity` for event images warped into the
-        frame cameras (their disparity follows the event cameras' baseline)."""
+        frame cameras (their disparity follows the event cameras' baseline).
+        ``event_stereo`` (:meth:`dhptam.frontend.Frontend.event_stereo`) reads such a pair's
+        stereo matches exactly instead: each match is triangulated with the event cameras
+        and its left keypoint and right column moved to where the frame cameras see the
+        point; ``disparity`` must then stay the identity."""
         return _track_result(
             t_ns,
             self._core.track(
@@ -132,6 +137,7 @@ class System:
                 _sigmas(left),
                 float(sigma_scale),
                 _disparity(disparity),
+                event_stereo,
             ),
         )
 
@@ -152,6 +158,7 @@ class System:
         other: tuple[FeatureSet, FeatureSet],
         sigma_scales: tuple[float, float] = (1.0, 1.0),
         disparities: tuple[tuple[float, float], tuple[float, float]] = ((1.0, 0.0), (1.0, 0.0)),
+        event_stereo: tuple[_core.EventStereo | None, _core.EventStereo | None] = (None, None),
     ) -> BridgeResult | None:
         """Inserts a bridge keyframe at the last tracked frame (taken at ``t_ns``) across a
         change of image appearance, e.g. the fusion switching between frame- and
@@ -165,7 +172,8 @@ class System:
         like ``other``, track against it and the map stays one piece. ``None`` when refused:
         the last frame is not at ``t_ns``, was lost, or too few primary features matched.
         ``sigma_scales`` multiply the keypoint σ of ``primary`` and ``other``;
-        ``disparities`` are their disparity corrections (see :meth:`track`).
+        ``disparities`` are their disparity corrections and ``event_stereo`` their
+        event-stereo readings (see :meth:`track`).
         """
         (pl, pr), (ol, orr) = primary, other
         r = self._core.bridge(
@@ -174,6 +182,7 @@ class System:
             ol.keypoints, ol.descriptors, orr.keypoints, orr.descriptors,
             _sigmas(pl), _sigmas(ol), float(sigma_scales[0]), float(sigma_scales[1]),
             _disparity(disparities[0]), _disparity(disparities[1]),
+            event_stereo[0], event_stereo[1],
         )  # fmt: skip
         if r is None:
             return None

@@ -34,6 +34,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         sigmas: None,
         sigma_scale: 1.0,
         disparity: DisparityCorrection::IDENTITY,
+        event_stereo: None,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
@@ -41,6 +42,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         sigmas: None,
         sigma_scale: 1.0,
         disparity: DisparityCorrection::IDENTITY,
+        event_stereo: None,
     };
     system.track(f.t_ns, left, right).unwrap();
 }

@@ -4,7 +4,8 @@
 //! stays quick; `tests/test_system.py` runs the same scenarios at ≈ 600 features a frame.
 
 use dhptam_core::config::Config;
-use dhptam_core::geometry::{Se3, So3};
+use dhptam_core::fusion::{Depth, EventStereo};
+use dhptam_core::geometry::{Pinhole, Se3, So3};
 use dhptam_core::matching::Descriptors;
 use dhptam_core::slam::loop_closing::verify_loop;
 use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
@@ -16,7 +17,7 @@ use dhptam_core::slam::{
     fuse_and_refind, DisparityCorrection, FrameFeatures, FrameRecord, Map, System, TrackResult,
     TrackState,
 };
-use nalgebra::Vector3;
+use nalgebra::{Vector2, Vector3};
 
 mod common;
 use common::{ate, positions, track, truth_positions};
@@ -164,6 +165,7 @@ fn threaded_stress_and_prompt_shutdown() {
         sigmas: None,
         sigma_scale: 1.0,
         disparity: DisparityCorrection::IDENTITY,
+        event_stereo: None,
     };
     assert!(system.track(f.t_ns, left, left).is_err());
 }
@@ -715,6 +717,7 @@ fn features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
             sigmas: None,
             sigma_scale: 1.0,
             disparity: DisparityCorrection::IDENTITY,
+            event_stereo: None,
         },
         FrameFeatures {
             keypoints: &f.right.keypoints,
@@ -722,6 +725,7 @@ fn features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
             sigmas: None,
             sigma_scale: 1.0,
             disparity: DisparityCorrection::IDENTITY,
+            event_stereo: None,
         },
     )
 }
@@ -946,6 +950,7 @@ fn disparity_correction_scales_the_stereo_depths() {
                 sigmas: None,
                 sigma_scale: 1.0,
                 disparity,
+                event_stereo: None,
             }
         };
         let r = system.track(f.t_ns, features("left"), features("right"))?;
@@ -977,6 +982,94 @@ fn disparity_correction_scales_the_stereo_depths() {
     assert!(c.apply(100.0, 101.0).is_nan());
     assert!(c.apply(100.0, f32::NAN).is_nan());
     assert_eq!(DisparityCorrection::IDENTITY.apply(100.0, 101.0), 101.0);
+}
+
+/// Issue 8, event images read through the event cameras' geometry: a reading whose event
+/// pair is the frame pair changes no map point; one whose event baseline is twice the frame
+/// baseline reads every match as twice as far; a disparity correction next to it is refused.
+#[test]
+fn event_stereo_reading_triangulates_with_the_event_pair() {
+    let o = SyntheticOptions {
+        frames: 1,
+        seed: 8,
+        ..Default::default()
+    };
+    let f = &generate(&o)[0];
+    let c = o.calib;
+    let k = Pinhole {
+        fx: c.fx,
+        fy: c.fy,
+        cx: c.cx,
+        cy: c.cy,
+    };
+    let reading = |event_baseline: f64| {
+        // The right event camera at +event_baseline along x of the left one (which is the
+        // left frame camera): seen from the right frame camera, event_baseline − b along x.
+        let right = Se3::new(
+            So3::identity(),
+            Vector3::new(event_baseline - c.baseline_m, 0.0, 0.0),
+        );
+        EventStereo::new(
+            k,
+            event_baseline,
+            k,
+            c.baseline_m,
+            [Se3::identity(), right],
+            Depth::Infinity,
+            Vector2::zeros(),
+        )
+        .unwrap()
+    };
+    let map = |reading: Option<&EventStereo>, disparity: DisparityCorrection| {
+        let mut system = System::new(c, Config::default(), false).unwrap();
+        let features = |kp: &'static str| {
+            let side = if kp == "left" { &f.left } else { &f.right };
+            FrameFeatures {
+                keypoints: &side.keypoints,
+                descriptors: Descriptors::float(&side.descriptors, 32).unwrap(),
+                sigmas: None,
+                sigma_scale: 1.0,
+                disparity,
+                event_stereo: reading,
+            }
+        };
+        system.track(f.t_ns, features("left"), features("right"))?;
+        Ok::<_, dhptam_core::error::Error>(system.map_points())
+    };
+    let median_z = |points: &[[f64; 3]]| {
+        let mut z: Vec<f64> = points.iter().map(|p| p[2]).collect();
+        z.sort_by(f64::total_cmp);
+        z[z.len() / 2]
+    };
+    let plain = map(None, DisparityCorrection::IDENTITY).unwrap();
+    let same = map(Some(&reading(c.baseline_m)), DisparityCorrection::IDENTITY).unwrap();
+    assert_eq!(plain.len(), same.len());
+    let moved = plain
+        .iter()
+        .zip(&same)
+        .map(|(a, b)| (0..3).map(|i| (a[i] - b[i]).abs()).fold(0.0, f64::max))
+        .fold(0.0, f64::max);
+    assert!(
+        moved < 1e-4,
+        "a co-located event pair moved points {moved} m"
+    );
+    let doubled = map(
+        Some(&reading(2.0 * c.baseline_m)),
+        DisparityCorrection::IDENTITY,
+    )
+    .unwrap();
+    let ratio = median_z(&doubled) / median_z(&plain);
+    assert!((ratio - 2.0).abs() < 0.05, "depth ratio {ratio}");
+    let err = map(
+        Some(&reading(c.baseline_m)),
+        DisparityCorrection {
+            scale: 0.9,
+            offset_px: 0.0,
+        },
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("left.disparity"), "{err}");
 }
 
 /// The whole-map bundle adjustment pulls a map whose keyframes and points were all knocked

@@ -3,7 +3,7 @@
 use dhptam_core::config::FusionConfig;
 use std::sync::{Arc, Mutex};
 
-use dhptam_core::fusion::{self, Depth, EventFrameWarp, EventRectifier, WarpMap};
+use dhptam_core::fusion::{self, Depth, EventFrameWarp, EventRectifier, EventStereo, WarpMap};
 use dhptam_core::geometry::Pinhole;
 use nalgebra::Vector2;
 use numpy::ndarray::{Array2, Array3};
@@ -426,6 +426,88 @@ impl PyEventRectifier {
                     out[[i, 0]] = f64::from(ru);
                     out[[i, 1]] = f64::from(rv);
                 }
+            }
+        }
+        Ok(out.into_pyarray(py))
+    }
+}
+
+/// Reads stereo matches of event images warped into the rectified frame cameras as the frame
+/// cameras would have measured them (see `dhptam_core::fusion::EventStereo`).
+#[pyclass(name = "EventStereo", module = "dhptam._core", frozen)]
+pub struct PyEventStereo {
+    pub(crate) inner: EventStereo,
+}
+
+#[pymethods]
+impl PyEventStereo {
+    /// `k_event`, `k_frame`: rectified intrinsics `[fx, fy, cx, cy]` of the event and frame
+    /// pairs, with their baselines (metres); `frame_from_event_left`/`_right`: rectified
+    /// event camera → rectified frame camera per side; `depth_m` the warp plane (0:
+    /// infinity) and `align_px` δP_align, as the warps that rendered the images.
+    #[new]
+    #[pyo3(signature = (
+        k_event, event_baseline_m, k_frame, frame_baseline_m, frame_from_event_left,
+        frame_from_event_right, depth_m, align_px=(0.0, 0.0)
+    ))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        k_event: &Bound<'_, PyAny>,
+        event_baseline_m: f64,
+        k_frame: &Bound<'_, PyAny>,
+        frame_baseline_m: f64,
+        frame_from_event_left: &PySe3,
+        frame_from_event_right: &PySe3,
+        depth_m: f64,
+        align_px: (f64, f64),
+    ) -> PyResult<Self> {
+        if !(depth_m.is_finite() && depth_m >= 0.0) {
+            return Err(input_error(
+                "depth_m",
+                "a plane depth in metres (>= 0, 0: infinity)",
+                depth_m,
+            ));
+        }
+        let depth = if depth_m == 0.0 {
+            Depth::Infinity
+        } else {
+            Depth::Plane { depth_m }
+        };
+        let inner = EventStereo::new(
+            pinhole(k_event, "k_event")?,
+            event_baseline_m,
+            pinhole(k_frame, "k_frame")?,
+            frame_baseline_m,
+            [frame_from_event_left.inner, frame_from_event_right.inner],
+            depth,
+            Vector2::new(align_px.0, align_px.1),
+        )
+        .py()?;
+        Ok(Self { inner })
+    }
+
+    /// The frame cameras' `(u_left, v, u_right)` `(N, 3)` of warped matches `(N, 3)`
+    /// `(u_left, v, u_right)`; NaN rows where a match cannot be read (see `frame_reading`).
+    fn frame_readings<'py>(
+        &self,
+        py: Python<'py>,
+        matches: PyReadonlyArray2<'py, f32>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let view = matches.as_array();
+        if view.ncols() != 3 {
+            return Err(input_error(
+                "matches",
+                "an (N, 3) array of (u_left, v, u_right)",
+                format!("shape {:?}", view.shape()),
+            ));
+        }
+        let mut out = Array2::<f32>::from_elem((view.nrows(), 3), f32::NAN);
+        for (row, m) in out.rows_mut().into_iter().zip(view.rows()) {
+            if let Some(([u, v], ur)) = self.inner.frame_reading([m[0], m[1]], m[2]) {
+                let mut row = row;
+                row[0] = u;
+                row[1] = v;
+                row[2] = ur;
             }
         }
         Ok(out.into_pyarray(py))

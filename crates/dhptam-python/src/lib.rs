@@ -94,6 +94,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(fusion::_warp_to_frame, m)?)?;
     m.add_function(wrap_pyfunction!(fusion::_warp_and_fuse, m)?)?;
     m.add_class::<fusion::PyEventRectifier>()?;
+    m.add_class::<fusion::PyEventStereo>()?;
     m.add_function(wrap_pyfunction!(geometry::_data_address, m)?)?;
     m.add_function(wrap_pyfunction!(solver::_solve_bal_file, m)?)?;
     m.add_function(wrap_pyfunction!(solver::_solve_pose_graph_file, m)?)?;

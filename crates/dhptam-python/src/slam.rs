@@ -21,6 +21,7 @@ use pyo3::types::PyDict;
 use crate::config::PyConfig;
 use crate::errors::DetachGuarded;
 use crate::errors::{input_error, IntoPyResult};
+use crate::fusion::PyEventStereo;
 use crate::matching::DescriptorArray;
 
 fn keypoints<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<PyReadonlyArray2<'py, f32>> {
@@ -52,6 +53,7 @@ fn features<'a>(
     sigmas: Option<&'a PyReadonlyArray1<'_, f32>>,
     sigma_scale: f32,
     disparity: (f32, f32),
+    event_stereo: Option<&'a PyEventStereo>,
 ) -> PyResult<FrameFeatures<'a>> {
     Ok(FrameFeatures {
         keypoints: keypoints
@@ -69,6 +71,7 @@ fn features<'a>(
             scale: disparity.0,
             offset_px: disparity.1,
         },
+        event_stereo: event_stereo.map(|e| &e.inner),
     })
 }
 
@@ -151,10 +154,12 @@ impl PySystem {
     /// Tracks one frame; returns (pose (4, 4) world_from_cam, state, inliers, keyframe).
     /// `left_sigmas`: the left keypoints' σ in pixels (None: 1 each); `sigma_scale`: a
     /// factor on all of them (e.g. an event-dominated image); `disparity`: (scale, offset px)
-    /// mapping the pair's stereo disparities to the frame cameras' (event images).
+    /// mapping the pair's stereo disparities to the frame cameras' (event images);
+    /// `event_stereo`: an `EventStereo` reading the pair's stereo matches through the event
+    /// cameras' geometry instead (warped event images; `disparity` stays the identity).
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
-        left_sigmas=None, sigma_scale=1.0, disparity=(1.0, 0.0)
+        left_sigmas=None, sigma_scale=1.0, disparity=(1.0, 0.0), event_stereo=None
     ))]
     #[allow(clippy::too_many_arguments)]
     fn track<'py>(
@@ -168,14 +173,16 @@ impl PySystem {
         left_sigmas: Option<&Bound<'py, PyAny>>,
         sigma_scale: f32,
         disparity: (f32, f32),
+        event_stereo: Option<PyRef<'py, PyEventStereo>>,
     ) -> PyResult<TrackTuple<'py>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
         let ls = sigmas(left_sigmas, "left.sigmas")?;
-        let left = features(&lk, &ld, ls.as_ref(), sigma_scale, disparity)?;
-        let right = features(&rk, &rd, None, sigma_scale, disparity)?;
+        let es = event_stereo.as_deref();
+        let left = features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es)?;
+        let right = features(&rk, &rd, None, sigma_scale, disparity, es)?;
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
@@ -195,14 +202,16 @@ impl PySystem {
     /// `primary` features are the image that frame was tracked with, `other` the same data
     /// rendered the other way; `left_sigmas`/`other_left_sigmas` their left keypoints' σ
     /// (None: 1 each), `sigma_scale`/`other_sigma_scale` factors on them,
-    /// `disparity`/`other_disparity` their disparity corrections (see `track`). Returns
+    /// `disparity`/`other_disparity` their disparity corrections and
+    /// `event_stereo`/`other_event_stereo` their event-stereo readings (see `track`). Returns
     /// (keyframe id, re-matched map points, points from the other image), or None when
     /// refused.
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
         other_left_keypoints, other_left_descriptors, other_right_keypoints,
         other_right_descriptors, left_sigmas=None, other_left_sigmas=None, sigma_scale=1.0,
-        other_sigma_scale=1.0, disparity=(1.0, 0.0), other_disparity=(1.0, 0.0)
+        other_sigma_scale=1.0, disparity=(1.0, 0.0), other_disparity=(1.0, 0.0),
+        event_stereo=None, other_event_stereo=None
     ))]
     #[allow(clippy::too_many_arguments)]
     fn bridge<'py>(
@@ -223,6 +232,8 @@ impl PySystem {
         other_sigma_scale: f32,
         disparity: (f32, f32),
         other_disparity: (f32, f32),
+        event_stereo: Option<PyRef<'py, PyEventStereo>>,
+        other_event_stereo: Option<PyRef<'py, PyEventStereo>>,
     ) -> PyResult<Option<(u64, usize, usize)>> {
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
@@ -234,13 +245,21 @@ impl PySystem {
         let ord = DescriptorArray::extract(other_right_descriptors, "other_right.descriptors")?;
         let ls = sigmas(left_sigmas, "left.sigmas")?;
         let ols = sigmas(other_left_sigmas, "other_left.sigmas")?;
+        let (es, oes) = (event_stereo.as_deref(), other_event_stereo.as_deref());
         let primary = (
-            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity)?,
-            features(&rk, &rd, None, sigma_scale, disparity)?,
+            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es)?,
+            features(&rk, &rd, None, sigma_scale, disparity, es)?,
         );
         let other = (
-            features(&olk, &old, ols.as_ref(), other_sigma_scale, other_disparity)?,
-            features(&ork, &ord, None, other_sigma_scale, other_disparity)?,
+            features(
+                &olk,
+                &old,
+                ols.as_ref(),
+                other_sigma_scale,
+                other_disparity,
+                oes,
+            )?,
+            features(&ork, &ord, None, other_sigma_scale, other_disparity, oes)?,
         );
         let b = py
             .detach_guarded("slam::bridge", || {

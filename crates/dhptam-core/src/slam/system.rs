@@ -22,6 +22,7 @@ use super::tracking::{
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
 use crate::error::{ensure_sigmas, Error, Result};
+use crate::fusion::EventStereo;
 use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors};
 use crate::place::PlaceDatabase;
@@ -46,6 +47,12 @@ pub struct FrameFeatures<'a> {
     /// used): identity for frames; for event images warped into the frame cameras, the
     /// correction the Python front-end computes (`Frontend.event_disparity`).
     pub disparity: DisparityCorrection,
+    /// For event images warped into the frame cameras: reads each stereo match through the
+    /// event cameras' geometry (both pixels unwarped, triangulated with the event pair,
+    /// projected into the frame cameras), which moves the left keypoint and its right column
+    /// to where the frame cameras would have seen the point (the left image's is used; with
+    /// it, `disparity` must be the identity). `None`: keypoints as measured.
+    pub event_stereo: Option<&'a EventStereo>,
 }
 
 /// Maps a stereo match's measured disparity `d = u_left − u_right` of an image pair to the
@@ -472,6 +479,13 @@ impl System {
                 format!("scale {}, offset {} px", d.scale, d.offset_px),
             ));
         }
+        if f.event_stereo.is_some() && d != DisparityCorrection::IDENTITY {
+            return Err(Error::invalid(
+                format!("{side}.disparity"),
+                "the identity with an event-stereo reading (the reading corrects disparities itself)",
+                format!("scale {}, offset {} px", d.scale, d.offset_px),
+            ));
+        }
         let this = (f.descriptors.kind(), f.descriptors.width());
         match self.descriptor {
             Some(d) if d != this => {
@@ -493,7 +507,7 @@ impl System {
         left: FrameFeatures<'f>,
         right: FrameFeatures<'f>,
     ) -> Result<StereoFrame<'f>> {
-        let left_xy = self.check_features("left", &left)?;
+        let mut left_xy = self.check_features("left", &left)?;
         let right_xy = self.check_features("right", &right)?;
         let shared = &self.shared;
         let c = &shared.config;
@@ -508,8 +522,23 @@ impl System {
                 right.descriptors,
             )
         });
-        for (u, kp) in u_right.iter_mut().zip(&left_xy) {
-            *u = left.disparity.apply(kp[0], *u);
+        match left.event_stereo {
+            Some(reading) => {
+                for (u, kp) in u_right.iter_mut().zip(left_xy.iter_mut()) {
+                    if !u.is_finite() {
+                        continue;
+                    }
+                    match reading.frame_reading(*kp, *u) {
+                        Some((p, ur)) => (*kp, *u) = (p, ur),
+                        None => *u = f32::NAN,
+                    }
+                }
+            }
+            None => {
+                for (u, kp) in u_right.iter_mut().zip(&left_xy) {
+                    *u = left.disparity.apply(kp[0], *u);
+                }
+            }
         }
         let scale = left.sigma_scale;
         let sigmas = match left.sigmas {

@@ -17,6 +17,7 @@ pub fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
         sigmas: None,
         sigma_scale: 1.0,
         disparity: DisparityCorrection::IDENTITY,
+        event_stereo: None,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
@@ -24,6 +25,7 @@ pub fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
         sigmas: None,
         sigma_scale: 1.0,
         disparity: DisparityCorrection::IDENTITY,
+        event_stereo: None,
     };
     system.track(f.t_ns, left, right).unwrap()
 }
