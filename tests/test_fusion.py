@@ -78,6 +78,14 @@ def test_dark_frames_with_a_signal_are_stretched_and_noise_and_good_frames_are_n
     saturated = _noisy_ramp(120, 600, 0.5, 3)  # 70 % of the pixels at 255
     r = recover_exposure(saturated)
     assert r.failed and r.stretched and choose_beta(r.image).bias == "dvs"
+    # The DVS switch has its own threshold: above the clipped share, the stretched frame stays
+    # APS-biased, while the exposure test (and so the stretch) is unchanged.
+    lenient = Config.from_toml("[fusion]\ndvs_clipped_fraction = 0.9\n")
+    r2 = recover_exposure(saturated, lenient)
+    assert r2.failed and r2.stretched and np.array_equal(r2.image, r.image)
+    assert choose_beta(r.image, config=lenient).bias == "aps"
+    with pytest.raises(ConfigError, match="dvs_clipped_fraction"):
+        Config.from_toml("[fusion]\ndvs_clipped_fraction = -0.1\n")
 
     off = Config.from_toml("[fusion]\nrecover_exposure = false\n")
     assert not recover_exposure(dark, off).stretched

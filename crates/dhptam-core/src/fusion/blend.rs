@@ -12,7 +12,7 @@
 //! frames: uncapped, min(r, 1 − r) is about 0.45 for a typical frame, and the event edges
 //! blended in at that weight cost tracking accuracy under normal light (docs/FUSION.md).
 //!
-//! The frame "fails" when it is under- or over-exposed — more than `max_clipped_fraction` of
+//! The frame "fails" when it is under- or over-exposed — more than `dvs_clipped_fraction` of
 //! its pixels at or below `dark_level` or at or above `bright_level` — or when the caller
 //! reports fewer than `min_features` features detected on it. Modes `frames` and `events` fix
 //! β to 0 and 1.
@@ -130,7 +130,7 @@ pub fn choose_beta(
         FusionMode::Events => (1.0, Bias::EventsOnly),
         FusionMode::Fusion => {
             let too_few = feature_count.is_some_and(|k| k < config.min_features as usize);
-            if too_few || clipped_fraction > config.max_clipped_fraction {
+            if too_few || clipped_fraction > config.dvs_clipped_fraction {
                 (ratio.max(1.0 - ratio).min(config.beta_max), Bias::Dvs)
             } else {
                 let beta = ratio.min(1.0 - ratio).min(config.aps_beta_max);
