@@ -704,9 +704,9 @@ class ImageModel(NamedTuple):
 def _image_models(frontend: Any) -> Callable[[str, float], ImageModel]:
     """The :class:`ImageModel` of an image from its fusion bias and warp depth: DVS-biased
     images get ``[tracking] dvs_sigma_scale``, and event-dominated ones (``dvs``, ``events``)
-    are read through the event cameras' geometry (:meth:`Frontend.event_stereo`, or the
-    disparity correction :meth:`Frontend.event_disparity` with ``[fusion] event_stereo =
-    "disparity"``)."""
+    the event cameras' disparity correction (:meth:`Frontend.event_disparity`, the default),
+    or with ``[fusion] event_stereo = "exact"`` the reading of their stereo matches through
+    the event cameras' geometry (:meth:`Frontend.event_stereo`)."""
     dvs_sigma_scale = float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"])
 
     def model(bias: str, warp_depth_m: float) -> ImageModel:
