@@ -655,9 +655,7 @@ class Frontend:
         the rectified frame cameras. ``None`` in mode ``frames``, with ``[fusion]
         event_disparity = false`` or ``event_stereo = "disparity"`` (then
         :meth:`event_disparity` applies). Built once per depth."""
-        if self.mode == "frames" or not self.event_disparity_enabled:
-            return None
-        if self.event_stereo_reading != "exact":
+        if self.mode == "frames" or not self.event_disparity_enabled or self.event_stereo_reading != "exact":
             return None
         depth = float(depth_m)
         reading = self._event_stereo.get(depth)

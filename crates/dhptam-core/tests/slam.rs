@@ -20,7 +20,7 @@ use dhptam_core::slam::{
 use nalgebra::{Vector2, Vector3};
 
 mod common;
-use common::{ate, positions, track, truth_positions};
+use common::{ate, frame_features, positions, track, truth_positions, view_features};
 
 #[test]
 fn tracks_every_frame_of_a_noisy_sequence_with_outliers() {
@@ -708,28 +708,6 @@ fn negated(f: &SyntheticFrame) -> SyntheticFrame {
     g
 }
 
-fn features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
-    let dim = 32;
-    (
-        FrameFeatures {
-            keypoints: &f.left.keypoints,
-            descriptors: Descriptors::float(&f.left.descriptors, dim).unwrap(),
-            sigmas: None,
-            sigma_scale: 1.0,
-            disparity: DisparityCorrection::IDENTITY,
-            event_stereo: None,
-        },
-        FrameFeatures {
-            keypoints: &f.right.keypoints,
-            descriptors: Descriptors::float(&f.right.descriptors, dim).unwrap(),
-            sigmas: None,
-            sigma_scale: 1.0,
-            disparity: DisparityCorrection::IDENTITY,
-            event_stereo: None,
-        },
-    )
-}
-
 /// Frames `switched` look the other way (negated descriptors). With `bridge`, the switch
 /// in is bridged at the last normal frame (already tracked) and the switch out at the first
 /// normal frame (tracked with its other rendering first), as `dhptam run` does.
@@ -750,7 +728,7 @@ fn run_with_switches(
             // Leaving: track the rendering that matches the map, then bridge to the real one.
             let r = track(&mut system, &other);
             let b = system
-                .bridge(f.t_ns, features(&other), features(f))
+                .bridge(f.t_ns, frame_features(&other), frame_features(f))
                 .unwrap();
             assert!(b.is_some(), "bridge out refused at frame {i}");
             r
@@ -766,7 +744,7 @@ fn run_with_switches(
         if bridge && i + 1 == switched.start {
             // Entering: this frame was tracked normally; bridge it to its other rendering.
             let b = system
-                .bridge(f.t_ns, features(f), features(&other))
+                .bridge(f.t_ns, frame_features(f), frame_features(&other))
                 .unwrap()
                 .expect("bridge in refused");
             assert!(b.linked >= 50 && b.other_points >= 50, "{b:?}");
@@ -826,7 +804,11 @@ fn bridge_is_refused_for_a_frame_that_is_not_the_last_tracked() {
     // Nothing tracked yet.
     let other = negated(&frames[0]);
     assert!(system
-        .bridge(frames[0].t_ns, features(&frames[0]), features(&other))
+        .bridge(
+            frames[0].t_ns,
+            frame_features(&frames[0]),
+            frame_features(&other)
+        )
         .unwrap()
         .is_none());
     for f in &frames[..3] {
@@ -834,7 +816,11 @@ fn bridge_is_refused_for_a_frame_that_is_not_the_last_tracked() {
     }
     // Frame 1 is not the last tracked frame.
     assert!(system
-        .bridge(frames[1].t_ns, features(&frames[1]), features(&other))
+        .bridge(
+            frames[1].t_ns,
+            frame_features(&frames[1]),
+            frame_features(&other)
+        )
         .unwrap()
         .is_none());
     let t = system.tracking_totals();
@@ -842,7 +828,11 @@ fn bridge_is_refused_for_a_frame_that_is_not_the_last_tracked() {
     let keyframes = system.with_map(|m| m.keyframes.len());
     let other2 = negated(&frames[2]);
     let b = system
-        .bridge(frames[2].t_ns, features(&frames[2]), features(&other2))
+        .bridge(
+            frames[2].t_ns,
+            frame_features(&frames[2]),
+            frame_features(&other2),
+        )
         .unwrap()
         .expect("bridge at the last tracked frame");
     assert_eq!(system.tracking_totals().bridges, 1);
@@ -890,8 +880,8 @@ fn a_bridge_spans_predicted_frames() {
     let b = system
         .bridge(
             frames[39].t_ns,
-            features(&frames[39]),
-            features(&negated(&frames[39])),
+            frame_features(&frames[39]),
+            frame_features(&negated(&frames[39])),
         )
         .unwrap()
         .expect("bridge from the last measured frame refused");
@@ -920,8 +910,8 @@ fn a_bridge_spans_predicted_frames() {
     assert!(system
         .bridge(
             frames[50].t_ns,
-            features(&frames[50]),
-            features(&negated(&frames[50]))
+            frame_features(&frames[50]),
+            frame_features(&negated(&frames[50]))
         )
         .unwrap()
         .is_none());
@@ -942,18 +932,11 @@ fn disparity_correction_scales_the_stereo_depths() {
     let f = &generate(&o)[0];
     let median_depth = |disparity: DisparityCorrection| {
         let mut system = System::new(o.calib, Config::default(), false).unwrap();
-        let features = |kp: &'static str| {
-            let side = if kp == "left" { &f.left } else { &f.right };
-            FrameFeatures {
-                keypoints: &side.keypoints,
-                descriptors: Descriptors::float(&side.descriptors, 32).unwrap(),
-                sigmas: None,
-                sigma_scale: 1.0,
-                disparity,
-                event_stereo: None,
-            }
-        };
-        let r = system.track(f.t_ns, features("left"), features("right"))?;
+        let (left, right) = (
+            view_features(&f.left, disparity, None),
+            view_features(&f.right, disparity, None),
+        );
+        let r = system.track(f.t_ns, left, right)?;
         assert_eq!(r.state, TrackState::Initialised);
         let mut z: Vec<f64> = system.map_points().iter().map(|p| p[2]).collect();
         z.sort_by(f64::total_cmp);
@@ -1022,18 +1005,11 @@ fn event_stereo_reading_triangulates_with_the_event_pair() {
     };
     let map = |reading: Option<&EventStereo>, disparity: DisparityCorrection| {
         let mut system = System::new(c, Config::default(), false).unwrap();
-        let features = |kp: &'static str| {
-            let side = if kp == "left" { &f.left } else { &f.right };
-            FrameFeatures {
-                keypoints: &side.keypoints,
-                descriptors: Descriptors::float(&side.descriptors, 32).unwrap(),
-                sigmas: None,
-                sigma_scale: 1.0,
-                disparity,
-                event_stereo: reading,
-            }
-        };
-        system.track(f.t_ns, features("left"), features("right"))?;
+        let (left, right) = (
+            view_features(&f.left, disparity, reading),
+            view_features(&f.right, disparity, reading),
+        );
+        system.track(f.t_ns, left, right)?;
         Ok::<_, dhptam_core::error::Error>(system.map_points())
     };
     let median_z = |points: &[[f64; 3]]| {

@@ -502,9 +502,8 @@ impl PyEventStereo {
             ));
         }
         let mut out = Array2::<f32>::from_elem((view.nrows(), 3), f32::NAN);
-        for (row, m) in out.rows_mut().into_iter().zip(view.rows()) {
+        for (mut row, m) in out.rows_mut().into_iter().zip(view.rows()) {
             if let Some(([u, v], ur)) = self.inner.frame_reading([m[0], m[1]], m[2]) {
-                let mut row = row;
                 row[0] = u;
                 row[1] = v;
                 row[2] = ur;

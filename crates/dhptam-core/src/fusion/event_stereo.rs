@@ -109,9 +109,9 @@ impl EventStereo {
         let iz = 1.0 / x.z;
         let u = k.fx * x.x * iz + k.cx;
         let v = k.fy * x.y * iz + k.cy;
-        let ur = k.fx * (x.x - self.frame_baseline_m) * iz + k.cx;
+        let ur = (k.fx * (x.x - self.frame_baseline_m) * iz + k.cx) as f32;
         let out = [u as f32, v as f32];
-        (out.iter().all(|c| c.is_finite()) && (ur as f32).is_finite()).then_some((out, ur as f32))
+        (out.iter().all(|c| c.is_finite()) && ur.is_finite()).then_some((out, ur))
     }
 }
 

@@ -3,30 +3,39 @@
 // Each test crate compiles this module and uses its own subset of it.
 #![allow(dead_code)]
 
+use dhptam_core::fusion::EventStereo;
 use dhptam_core::geometry::Se3;
 use dhptam_core::matching::Descriptors;
-use dhptam_core::slam::synthetic::SyntheticFrame;
+use dhptam_core::slam::synthetic::{SyntheticFrame, SyntheticView};
 use dhptam_core::slam::{DisparityCorrection, FrameFeatures, System, TrackResult};
 use nalgebra::{Matrix3, Vector3};
 
+/// One synthetic view's features (32-float descriptors, 1 px each) read with `disparity` and
+/// `event_stereo`.
+pub fn view_features<'a>(
+    view: &'a SyntheticView,
+    disparity: DisparityCorrection,
+    event_stereo: Option<&'a EventStereo>,
+) -> FrameFeatures<'a> {
+    FrameFeatures {
+        keypoints: &view.keypoints,
+        descriptors: Descriptors::float(&view.descriptors, 32).unwrap(),
+        sigmas: None,
+        sigma_scale: 1.0,
+        disparity,
+        event_stereo,
+    }
+}
+
+/// One synthetic frame's (left, right) features as measured.
+pub fn frame_features(f: &SyntheticFrame) -> (FrameFeatures<'_>, FrameFeatures<'_>) {
+    let plain = |view| view_features(view, DisparityCorrection::IDENTITY, None);
+    (plain(&f.left), plain(&f.right))
+}
+
 /// Tracks one synthetic frame (32-float descriptors).
 pub fn track(system: &mut System, f: &SyntheticFrame) -> TrackResult {
-    let left = FrameFeatures {
-        keypoints: &f.left.keypoints,
-        descriptors: Descriptors::float(&f.left.descriptors, 32).unwrap(),
-        sigmas: None,
-        sigma_scale: 1.0,
-        disparity: DisparityCorrection::IDENTITY,
-        event_stereo: None,
-    };
-    let right = FrameFeatures {
-        keypoints: &f.right.keypoints,
-        descriptors: Descriptors::float(&f.right.descriptors, 32).unwrap(),
-        sigmas: None,
-        sigma_scale: 1.0,
-        disparity: DisparityCorrection::IDENTITY,
-        event_stereo: None,
-    };
+    let (left, right) = frame_features(f);
     system.track(f.t_ns, left, right).unwrap()
 }
 
