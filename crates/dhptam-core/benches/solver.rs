@@ -198,6 +198,7 @@ fn stereo_window() -> (
             BaKeyframe {
                 cam_from_world: if i < 2 { *t } else { Se3::exp(&d) * *t },
                 fixed: i < 2,
+                prior: None,
             }
         })
         .collect();

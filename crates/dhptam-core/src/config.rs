@@ -450,6 +450,22 @@ config_section! {
         max_fixed: u32 = 10,
         /// Levenberg–Marquardt iterations of the local bundle adjustment.
         ba_iterations: u32 = 30,
+        /// A Gaussian prior on the camera centre of each weakly tied free keyframe (see
+        /// `centre_prior_below`) in the local bundle adjustment: at its centre before the
+        /// adjustment, with the covariance the tracker measured for the frame that became the
+        /// keyframe times this factor squared (a keyframe whose frame had no measured
+        /// covariance, e.g. a map's first, gets none). Such a keyframe then moves about as
+        /// far as its tracking uncertainty allows, not as far as its own new points let it
+        /// slide (an event-dominated keyframe after a switch of the fusion's mode). On the
+        /// HDR-lit real trajectories it halved `fusion`'s error and changed no other bench
+        /// by more than noise (docs/BENCHMARKS.md, "A centre prior for weakly tied
+        /// keyframes"). 0: no prior.
+        centre_prior_scale: f64 = 0.5,
+        /// Weakly tied: fewer than this many of the keyframe's map points are observed by
+        /// another keyframe too (twice `[tracking] keyframe_min_tracked`, the tracker's own
+        /// measure of a weak frame). Raising it towards every keyframe's count gave the prior
+        /// to well-tied keyframes as well and cost accuracy (docs/BENCHMARKS.md).
+        centre_prior_below: u32 = 100,
         /// A point observed by fewer keyframes than `min_observers` once this many keyframes
         /// have been added after its creation is removed.
         cull_after_keyframes: u32 = 3,
@@ -645,6 +661,12 @@ impl MappingConfig {
             self.window,
         )?;
         check("mapping.queue", self.queue >= 1, "at least 1", self.queue)?;
+        check(
+            "mapping.centre_prior_scale",
+            self.centre_prior_scale.is_finite() && self.centre_prior_scale >= 0.0,
+            "a finite number >= 0 (0: no prior)",
+            self.centre_prior_scale,
+        )?;
         check(
             "mapping.fuse_radius_px",
             self.fuse_radius_px.is_finite() && self.fuse_radius_px > 0.0,

@@ -14,10 +14,10 @@ use dhptam_core::slam::tracking::{
     StereoFrame, TrackContext, TrackerState,
 };
 use dhptam_core::slam::{
-    fuse_and_refind, DisparityCorrection, FrameFeatures, FrameRecord, Map, System, TrackResult,
-    TrackState,
+    fuse_and_refind, local_mapping, DisparityCorrection, FrameFeatures, FrameRecord, Map, System,
+    TrackResult, TrackState,
 };
-use nalgebra::{Vector2, Vector3};
+use nalgebra::{Matrix3, Vector2, Vector3};
 
 mod common;
 use common::{ate, frame_features, positions, track, truth_positions, view_features};
@@ -388,6 +388,82 @@ fn a_pose_tracked_before_its_keyframe_moved_is_carried_with_it() {
         ..Default::default()
     };
     assert!(reference_motion(&map, &gone, Some(then)).is_none());
+}
+
+#[test]
+fn the_centre_prior_holds_a_weakly_placed_keyframe_in_the_local_adjustment() {
+    // Keyframe 1 goes in 2 cm off its true pose, observing keyframe 0's points. The local
+    // adjustment (keyframe 0 the gauge) moves it towards the truth; with `[mapping]
+    // centre_prior_scale` and a measured 1 mm tracking deviation, a factor of 0.001 (1 µm)
+    // holds it where it was put when it counts as weakly tied (`centre_prior_below` above
+    // its shared points), and leaves it free otherwise or with 0 (no prior).
+    let o = SyntheticOptions::default();
+    let frames = generate(&o);
+    let adjusted_centre = |scale: f64, below: u32| {
+        let mut config = Config::default();
+        config.mapping.centre_prior_scale = scale;
+        config.mapping.centre_prior_below = below;
+        let ctx = TrackContext {
+            calib: &o.calib,
+            cfg: &config.tracking,
+            tri: &config.triangulation,
+        };
+        let (f0, f1) = (&frames[0], &frames[3]);
+        let mut map = Map::default();
+        let kf0 = insert_frame(&mut map, f0, f0.world_from_cam, &[]);
+        let state = TrackerState {
+            reference: Some(kf0),
+            ..Default::default()
+        };
+        let frame = stereo_frame(f1);
+        let tracked =
+            track_local_map(&map, &state, &frame, &ctx, f1.world_from_cam.inverse()).unwrap();
+        assert!(tracked.inliers > 50, "{} inliers", tracked.inliers);
+        let off = Se3::new(So3::identity(), Vector3::new(0.02, 0.0, 0.0)) * f1.world_from_cam;
+        let (kf1, _) = insert_keyframe(&mut map, &frame, off, &tracked.matches, &o.calib, ctx.tri);
+        for (t_ns, keyframe) in [(f0.t_ns, kf0), (f1.t_ns, kf1)] {
+            map.trajectory.push(FrameRecord {
+                t_ns,
+                keyframe,
+                kf_from_cam: Se3::identity(),
+                predicted: false,
+                position_cov: Some(Matrix3::identity() * 1e-6),
+            });
+        }
+        let map = std::sync::RwLock::new(map);
+        let c = &config;
+        local_mapping(
+            &map,
+            kf1,
+            &o.calib,
+            &c.mapping,
+            &c.tracking,
+            &c.triangulation,
+            None,
+        )
+        .unwrap();
+        let m = map.read().unwrap();
+        (
+            m.keyframes[&kf1].centre(),
+            off.translation,
+            f1.world_from_cam.translation,
+        )
+    };
+    for (scale, below) in [(0.0, u32::MAX), (1e-3, 1)] {
+        let (free, start, truth) = adjusted_centre(scale, below);
+        assert!(
+            (free - truth).norm() < 0.5 * (start - truth).norm(),
+            "scale {scale}, below {below}: {:.4} m from the truth, started {:.4} m",
+            (free - truth).norm(),
+            (start - truth).norm()
+        );
+    }
+    let (held, start, _) = adjusted_centre(1e-3, u32::MAX);
+    assert!(
+        (held - start).norm() < 1e-4,
+        "held {:.6} m away",
+        (held - start).norm()
+    );
 }
 
 /// Two keyframes at the two ends of a loop (a bit more than one turn apart), each with its own

@@ -1,6 +1,7 @@
 //! Local stereo bundle adjustment: residual Jacobians against central finite differences,
 //! recovery of a synthetic window from a perturbed and noisy start, fixed keyframes held
-//! exactly, the gauge fixed by one keyframe, gross outliers flagged, interruption, bad input.
+//! exactly, the gauge fixed by one keyframe, centre priors, gross outliers flagged,
+//! interruption, bad input.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -8,11 +9,11 @@ use std::sync::Arc;
 use dhptam_core::geometry::Se3;
 use dhptam_core::solver::stereo_ba::stereo_ba_residual;
 use dhptam_core::solver::{
-    solve_stereo_ba, BaKeyframe, BaObservation, LmOptions, Loss, StereoBaOptions, StereoIntrinsics,
-    Termination,
+    solve_stereo_ba, BaKeyframe, BaObservation, CentrePrior, LmOptions, Loss, StereoBaOptions,
+    StereoIntrinsics, Termination,
 };
 use dhptam_core::Error;
-use nalgebra::{Vector2, Vector3, Vector6};
+use nalgebra::{Matrix3, Vector2, Vector3, Vector6};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -49,6 +50,7 @@ fn window(n_kf: usize, n_pt: usize, sigma: f64, seed: u64) -> Window {
             BaKeyframe {
                 cam_from_world: world_from_cam.inverse(),
                 fixed: false,
+                prior: None,
             }
         })
         .collect();
@@ -112,6 +114,7 @@ fn perturb(w: &Window, seed: u64) -> (Vec<BaKeyframe>, Vec<Vector3<f64>>) {
             BaKeyframe {
                 cam_from_world: Se3::exp(&d) * kf.cam_from_world,
                 fixed: false,
+                prior: None,
             }
         })
         .collect();
@@ -339,6 +342,67 @@ fn one_fixed_keyframe_fixes_the_gauge() {
         assert!(dt < 1e-6 && dr < 1e-7, "pose error {dt} m {dr} rad");
     }
     assert_eq!(keyframes[2].cam_from_world, w.keyframes[2].cam_from_world);
+}
+
+/// The last keyframe free, started 4 cm off its true centre, the others fixed (so the points
+/// are pinned): a centre prior at the start pulls it back there as far as its information
+/// allows, and a negligible one leaves the observations in charge.
+#[test]
+fn a_centre_prior_holds_a_keyframe_as_far_as_its_information_allows() {
+    let w = window(4, 150, 0.0, 21);
+    let truth = w.keyframes[3].cam_from_world;
+    let start = Se3::exp(&Vector6::new(0.03, -0.02, 0.02, 0.0, 0.0, 0.0)) * truth;
+    let start_centre = start.inverse().translation;
+    let true_centre = truth.inverse().translation;
+    let solve = |information: f64| {
+        let mut kfs: Vec<BaKeyframe> = w
+            .keyframes
+            .iter()
+            .enumerate()
+            .map(|(i, kf)| BaKeyframe {
+                cam_from_world: if i == 3 { start } else { kf.cam_from_world },
+                fixed: i < 3,
+                prior: (i == 3).then_some(CentrePrior {
+                    centre: start_centre,
+                    information: Matrix3::identity() * information,
+                }),
+            })
+            .collect();
+        let mut points = w.points.clone();
+        let r = solve_stereo_ba(
+            &K,
+            &mut kfs,
+            &mut points,
+            &w.observations,
+            &options(50),
+            None,
+        )
+        .unwrap();
+        assert!(r.report.final_cost <= r.report.initial_cost);
+        kfs[3].cam_from_world.inverse().translation
+    };
+    // Negligible: the observations win (4 cm → under 10 µm).
+    let free = solve(1e-6);
+    assert!(
+        (free - true_centre).norm() < 1e-5,
+        "{}",
+        (free - true_centre).norm()
+    );
+    // Overwhelming (σ = 0.1 µm): the keyframe stays where the prior puts it.
+    let held = solve(1e14);
+    assert!(
+        (held - start_centre).norm() < 1e-5,
+        "{}",
+        (held - start_centre).norm()
+    );
+    // In between: the centre ends strictly between the two.
+    let between = solve(1e6);
+    let (to_truth, to_start) = (
+        (between - true_centre).norm(),
+        (between - start_centre).norm(),
+    );
+    assert!(to_truth > 1e-4 && to_start > 1e-4, "{to_truth} {to_start}");
+    assert!(to_truth + to_start < 1.05 * (start_centre - true_centre).norm());
 }
 
 #[test]

@@ -17,7 +17,8 @@ use crate::config::{MappingConfig, TrackingConfig, TriangulationConfig};
 use crate::error::Result;
 use crate::place::PlaceDatabase;
 use crate::solver::{
-    solve_stereo_ba, BaKeyframe, BaObservation, LmOptions, Loss, StereoBaOptions, Termination,
+    solve_stereo_ba, BaKeyframe, BaObservation, CentrePrior, LmOptions, Loss, StereoBaOptions,
+    Termination,
 };
 
 /// What one local-mapping step did.
@@ -80,6 +81,7 @@ pub fn local_mapping(
         Some(Selection {
             keyframes,
             point_ids,
+            prior: PriorRule::of(cfg),
         })
     };
     // 2. Bundle adjustment of the window, outlier observations removed.
@@ -151,6 +153,7 @@ pub fn global_bundle_adjustment(
                 .map(|&id| (id, Some(id) == first || m.segment_starts.contains(&id)))
                 .collect(),
             point_ids: m.points_of(&m.keyframes.keys().copied().collect::<Vec<u64>>()),
+            prior: PriorRule::NONE,
         })
     };
     let Some(Adjusted {
@@ -196,6 +199,41 @@ pub fn global_bundle_adjustment(
 struct Selection {
     keyframes: Vec<(u64, bool)>,
     point_ids: Vec<u64>,
+    /// Which free keyframes get a centre prior, and how wide.
+    prior: PriorRule,
+}
+
+/// `[mapping] centre_prior_scale` and `centre_prior_below`: free keyframes with fewer than
+/// `below` map points shared with another keyframe get a centre prior `scale` times as wide
+/// as their tracking deviation (`scale` 0: none).
+#[derive(Clone, Copy)]
+struct PriorRule {
+    scale: f64,
+    below: usize,
+}
+
+impl PriorRule {
+    const NONE: Self = Self {
+        scale: 0.0,
+        below: 0,
+    };
+
+    fn of(cfg: &MappingConfig) -> Self {
+        Self {
+            scale: cfg.centre_prior_scale,
+            below: cfg.centre_prior_below as usize,
+        }
+    }
+}
+
+/// How many of keyframe `k`'s map points another keyframe observes too: what ties it to the
+/// rest of the map.
+fn shared_points(m: &Map, k: &super::map::Keyframe) -> usize {
+    k.points
+        .iter()
+        .flatten()
+        .filter(|p| m.points.get(p).is_some_and(|p| p.observations.len() > 1))
+        .count()
 }
 
 /// What [`adjust`] leaves to its caller: the report so far, the keyframes it optimised, the
@@ -229,6 +267,7 @@ fn adjust<'a>(
         let Some(Selection {
             keyframes,
             point_ids,
+            prior,
         }) = select(&m)
         else {
             return Ok(None);
@@ -236,9 +275,16 @@ fn adjust<'a>(
         let kf_ids: Vec<u64> = keyframes.iter().map(|(id, _)| *id).collect();
         let kfs: Vec<BaKeyframe> = keyframes
             .iter()
-            .map(|(id, held)| BaKeyframe {
-                cam_from_world: m.keyframes[id].world_from_cam.inverse(),
-                fixed: *held,
+            .map(|(id, held)| {
+                let k = &m.keyframes[id];
+                let prior = (!*held && prior.scale > 0.0 && shared_points(&m, k) < prior.below)
+                    .then(|| centre_prior(&m, k, prior.scale))
+                    .flatten();
+                BaKeyframe {
+                    cam_from_world: k.world_from_cam.inverse(),
+                    fixed: *held,
+                    prior,
+                }
             })
             .collect();
         let kf_index: BTreeMap<u64, usize> =
@@ -324,6 +370,25 @@ fn adjust<'a>(
         point_ids,
         m,
     }))
+}
+
+/// The prior on keyframe `k`'s centre for `[mapping] centre_prior_scale` = `scale`: at its
+/// centre now, with the position covariance the tracker measured for the frame that became
+/// it (in the camera's axes, turned into the world's) times `scale²`. `None` when that frame
+/// has no measured covariance or it is not invertible.
+fn centre_prior(m: &Map, k: &super::map::Keyframe, scale: f64) -> Option<CentrePrior> {
+    let at = m.trajectory.partition_point(|r| r.t_ns < k.t_ns);
+    let record = m.trajectory.get(at).filter(|r| r.t_ns == k.t_ns)?;
+    let information_cam = (record.position_cov? * (scale * scale)).try_inverse()?;
+    let r = k.world_from_cam.rotation.matrix();
+    let information = r * information_cam * r.transpose();
+    information
+        .iter()
+        .all(|x| x.is_finite())
+        .then_some(CentrePrior {
+            centre: k.centre(),
+            information,
+        })
 }
 
 /// How many keyframes back [`Map::replaced`] entries are kept: a reader holds point ids for

@@ -23,4 +23,6 @@ pub use pose_graph::{
     PoseGraphSolver,
 };
 pub use robust::{Corrector, Loss};
-pub use stereo_ba::{solve_stereo_ba, BaKeyframe, BaObservation, StereoBaOptions, StereoBaResult};
+pub use stereo_ba::{
+    solve_stereo_ba, BaKeyframe, BaObservation, CentrePrior, StereoBaOptions, StereoBaResult,
+};

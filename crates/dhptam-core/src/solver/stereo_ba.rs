@@ -22,6 +22,9 @@
 //!
 //! Observations whose point lies at depth Z ≤ `min_depth` contribute nothing at that estimate.
 //!
+//! A free keyframe may carry a Gaussian prior on its camera centre ([`CentrePrior`]); it adds
+//! one 3×3 block to the keyframe's own normal-equation block and is not robustified.
+//!
 //! Each observation carries its measurement noise σ (pixels, shared by the rows of a stereo
 //! triple): residual and Jacobian rows are whitened by 1/σ, so the cost is ½ Σ ρ(‖r‖²/σ²) and
 //! the loss scale and outlier bound, stated for σ = 1 px, are σ times as wide in pixels.
@@ -49,6 +52,27 @@ pub struct BaKeyframe {
     pub cam_from_world: Se3,
     /// Held at its value (older covisible keyframes, the gauge anchor).
     pub fixed: bool,
+    /// A Gaussian prior on the camera centre of a free keyframe (ignored when `fixed`).
+    pub prior: Option<CentrePrior>,
+}
+
+/// A Gaussian prior on a keyframe's camera centre `c = −Rᵀ t`: the cost gains
+/// ½ (c − centre)ᵀ · information · (c − centre), without a robust loss. Its Jacobian with
+/// respect to the left-multiplied update [ρ, φ] is [−Rᵀ | 0].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct CentrePrior {
+    /// The centre the prior pulls towards, world frame, metres.
+    pub centre: Vector3<f64>,
+    /// Inverse covariance of the centre in world axes, 1/m² (symmetric, positive
+    /// semi-definite).
+    pub information: Matrix3<f64>,
+}
+
+impl CentrePrior {
+    /// The residual c − centre of the camera `cam_from_world` with rotation matrix `r`.
+    fn residual(&self, cam_from_world: &Se3, r: &Matrix3<f64>) -> Vector3<f64> {
+        -(r.transpose() * cam_from_world.translation) - self.centre
+    }
 }
 
 /// A keyframe's observation of a point in its rectified left image.
@@ -227,6 +251,8 @@ struct StereoBa<'a> {
     candidate_points: Vec<Vector3<f64>>,
     free_keyframes: Vec<usize>,
     /// Observations sorted by point (`schur.point_obs`).
+    /// (free index, keyframe index, prior) of every free keyframe with a centre prior.
+    priors: Vec<(usize, usize, CentrePrior)>,
     obs: Vec<Obs>,
     /// The caller's index of each sorted observation.
     original: Vec<usize>,
@@ -262,6 +288,14 @@ impl StereoBa<'_> {
                     .sum::<f64>()
             })
             .sum::<f64>()
+            + self
+                .priors
+                .iter()
+                .map(|(_, i, p)| {
+                    let r = p.residual(&poses[*i].se3, &poses[*i].rotation);
+                    0.5 * r.dot(&(p.information * r))
+                })
+                .sum::<f64>()
     }
 }
 
@@ -310,7 +344,20 @@ impl LeastSquares for StereoBa<'_> {
                         add_observation(loss, &mut res[local], &mut jp[local], b * w, v, gp);
                 }
             });
-        schur.accumulate_cameras(&self.jp, &self.residual)
+        let gmax = schur.accumulate_cameras(&self.jp, &self.residual);
+        // Centre priors: J = [−Rᵀ | 0], so U gains R Λ Rᵀ in its translation block and g_c
+        // gains −R Λ r.
+        let mut gmax_prior: f64 = 0.0;
+        for (f, i, p) in &self.priors {
+            let (pose, rot) = (&self.poses[*i].se3, &self.poses[*i].rotation);
+            let r = p.residual(pose, rot);
+            let mut u = schur.u[*f].fixed_view_mut::<3, 3>(0, 0);
+            u += rot * p.information * rot.transpose();
+            let mut g = schur.gc[*f].fixed_rows_mut::<3>(0);
+            g -= rot * (p.information * r);
+            gmax_prior = gmax_prior.max(schur.gc[*f].amax());
+        }
+        gmax.max(gmax_prior)
     }
 
     fn compute_step(&mut self, mu: f64, lo: f64, hi: f64) -> Option<Step> {
@@ -394,6 +441,15 @@ fn check_inputs(
             &[t.x, t.y, t.z, q[0], q[1], q[2], q[3]],
         )?;
     }
+    for (i, kf) in keyframes.iter().enumerate() {
+        if let Some(p) = kf.prior {
+            ensure_finite(&format!("keyframes[{i}].prior.centre"), p.centre.as_slice())?;
+            ensure_finite(
+                &format!("keyframes[{i}].prior.information"),
+                p.information.as_slice(),
+            )?;
+        }
+    }
     for (j, p) in points.iter().enumerate() {
         ensure_finite(&format!("points[{j}]"), p.as_slice())?;
     }
@@ -449,8 +505,12 @@ pub fn solve_stereo_ba(
     let (n_kf, n_pt, n_obs) = (keyframes.len(), points.len(), observations.len());
     let mut free_index = vec![None; n_kf];
     let mut free_keyframes = Vec::new();
+    let mut priors = Vec::new();
     for (i, kf) in keyframes.iter().enumerate() {
         if !kf.fixed {
+            if let Some(p) = kf.prior {
+                priors.push((free_keyframes.len(), i, p));
+            }
             free_index[i] = Some(free_keyframes.len());
             free_keyframes.push(i);
         }
@@ -520,6 +580,7 @@ pub fn solve_stereo_ba(
         poses,
         points: points.to_vec(),
         free_keyframes,
+        priors,
         obs,
         original,
         schur,
