@@ -115,6 +115,8 @@ def _measure(extractor: features.Extractor) -> dict[str, float]:
 #                      repeatability 0.776  precision 0.905  correct 444
 #   r2d2_WASF_N16, int8 trunk (same calibration)
 #                      repeatability 0.746  precision 0.927  correct 557
+#   (the two int8 rows with 7-bit activations on an AVX2 CPU without VNNI, 2026-12-02:
+#    0.744 / 0.889 / 423 and 0.735 / 0.920 / 559)
 #   orb                repeatability 0.802  precision 0.930  correct 888
 #   sift               repeatability 0.726  precision 0.969  correct 819
 THRESHOLDS = {
