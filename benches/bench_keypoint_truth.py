@@ -20,6 +20,9 @@ Keypoints on depth edges (the true depth varying by more than 5 % in the 3×3 pi
 are left out, since one depth cannot be assigned to them. The sequences are those of the
 accuracy benches (cached; generated on first use): the ``normal`` sequences driven by the
 real trajectories (``--normal-duration``, seed 1) and the HDR demo (``--demo-seeds``).
+Everything is measured in the rectified frame cameras, so mode ``events`` runs here with its
+images warped into them (``[fusion] events_geometry = "frame"``), not in the event cameras
+where ``dhptam run`` tracks it by default.
 
     python benches/bench_keypoint_truth.py [--modes fusion,frames,events] [--features orb]
         [--normal-duration 8] [--demo-seeds 0] [--step 4] [--out bench-keypoint-truth]
@@ -100,7 +103,9 @@ def measure(sequence: Path, sim: Any, mode: str, features: str, step: int) -> di
     disparity: list[float] = []
     pairs = matched = 0
     with load_tumvie(sequence) as seq:
-        fe = Frontend(seq, mode, prefetch=0)
+        # The truth is rendered for the frame cameras: event images warped into them.
+        config = _core.Config.from_toml('[fusion]\nevents_geometry = "frame"\n', "<bench>")
+        fe = Frontend(seq, mode, config, prefetch=0)
         extractor = from_config(
             _core.Config.from_toml(f'[features]\nextractor = "{features}"', "<bench>"),
             image_size=(int(fe.frame_rect.width), int(fe.frame_rect.height)),

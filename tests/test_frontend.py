@@ -14,11 +14,14 @@ import pytest
 from dhptam import SE3, SO3, _core
 from dhptam.datasets import load_tumvie
 from dhptam.errors import ConfigError, InputError
-from dhptam.frontend import MODES, Frontend, _exposed_like, is_flood
+from dhptam.frontend import EVENT_BORDER_PX, MODES, Frontend, _exposed_like, is_flood
 from dhptam.fusion import choose_beta
 from dhptam.sim import simulator_for
 
 _NS = 1_000_000_000
+# Mode events with its images warped into the frame cameras, as the fusion mode's are (the
+# default tracks them in the event cameras themselves).
+WARPED_EVENTS = 'events_geometry = "frame"\n'
 
 
 @pytest.fixture
@@ -34,13 +37,16 @@ def _frontend_threads() -> list[threading.Thread]:
 @pytest.mark.parametrize("mode", MODES)
 def test_images_have_the_rectified_size_and_the_mode_beta(sequence, mode: str) -> None:  # type: ignore[no-untyped-def]
     fe = Frontend(sequence, mode, stop=4)
-    calib = fe.calibration
+    calib = fe.tracked_calibration  # the images' camera: in mode events the event cameras
     frames = list(fe)
     assert [f.index for f in frames] == [0, 1, 2, 3]
     for f in frames:
         assert f.t_ns == int(sequence.frames.t_mid_ns[f.index])
-        for image in (f.left, f.right, f.frame_left, f.frame_right):
+        for image in (f.left, f.right):
             assert image.shape == (calib.height, calib.width)
+            assert image.dtype == np.uint8
+        for image in (f.frame_left, f.frame_right):
+            assert image.shape == (fe.calibration.height, fe.calibration.width)
             assert image.dtype == np.uint8
         if mode == "frames":
             assert (f.beta_left, f.beta_right, f.bias) == (0.0, 0.0, "frames")
@@ -84,6 +90,56 @@ def test_calibration_and_rect_from_cam_describe_the_rectified_left_camera(sequen
         world_from_cam[:3, :3] @ p_cam[0] + world_from_cam[:3, 3],
         world_from_rect[:3, :3] @ p_rect[0] + world_from_rect[:3, 3],
     )
+
+
+def test_events_mode_tracks_in_the_event_cameras_and_maps_poses_to_the_frame_camera(sequence) -> None:  # type: ignore[no-untyped-def]
+    fe = Frontend(sequence, "events", prefetch=0)
+    assert fe.tracks_event_cameras and not fe.warps_events
+    pad = EVENT_BORDER_PX
+    fx, fy, cx, cy, baseline, width, height = fe.tracked_calibration
+    k = fe.event_rect.K
+    assert (fx, fy, cx, cy) == pytest.approx((k[0, 0], k[1, 1], k[0, 2] + pad, k[1, 2] + pad))
+    assert (width, height) == (fe.event_rect.width + 2 * pad, fe.event_rect.height + 2 * pad)
+    assert baseline == pytest.approx(fe.event_rect.baseline_m)
+    # No warp: nothing to correct in the disparities, no depth to warp through.
+    assert fe.event_disparity(2.0) == (1.0, 0.0) and fe.event_stereo(2.0) is None
+    # The image is the normalised E3CT in its own pixels, inside a black border.
+    prepared = fe.prepare(2)
+    f = fe.finish(prepared, 1.5)
+    assert f.warp_depth_m == 0.0 and f.events_left is not None
+    assert f.left.shape == (height, width)
+    inner = (slice(pad, height - pad), slice(pad, width - pad))
+    assert prepared.tensors is not None and prepared.stats is not None
+    scales = np.asarray(prepared.stats.scales, np.float32)
+    normalised = np.clip(prepared.tensors[0] / scales, 0.0, 1.0)
+    np.testing.assert_allclose(f.events_left[inner], normalised, atol=1e-6)
+    border = np.ones((height, width), bool)
+    border[inner] = False
+    assert f.left[border].max() == 0 and f.left[inner].max() > 0
+    # Geometry: a point the left frame camera sees lands, through the tracked camera's pose
+    # and intrinsics, where the event camera's rectification sends its raw event pixel.
+    calib = sequence.calibration
+    p_cam = np.array([[0.1, -0.05, 1.5], [-0.3, 0.2, 2.5]])
+    p_tracked = (fe.tracked_from_rect @ fe.rect_from_cam) @ p_cam
+    uv = np.c_[fx * p_tracked[:, 0] / p_tracked[:, 2] + cx, fy * p_tracked[:, 1] / p_tracked[:, 2] + cy]
+    p_event = calib.cam_from_cam("event_left", "frame_left") @ p_cam
+    raw = calib.cameras["event_left"].project(p_event)
+    np.testing.assert_allclose(uv, fe.event_rect.rectify_pixels("left", raw) + pad, atol=1e-6)
+    # A tracked pose maps to the left frame camera's.
+    world_from_tracked = SE3(SO3.exp([0.1, 0.2, -0.3]), [1.0, 2.0, 3.0]).matrix()
+    world_from_cam = fe.camera_poses(world_from_tracked[None])[0]
+    assert np.allclose(
+        world_from_cam[:3, :3] @ p_cam[0] + world_from_cam[:3, 3],
+        world_from_tracked[:3, :3] @ p_tracked[0] + world_from_tracked[:3, 3],
+    )
+    # events_geometry = "frame": the event images warped into the frame cameras, as in fusion.
+    warped = Frontend(sequence, "events", _core.Config.from_toml('[fusion]\nevents_geometry = "frame"\n'))
+    assert not warped.tracks_event_cameras and warped.warps_events
+    assert warped.tracked_calibration == warped.calibration
+    assert np.allclose(warped.tracked_from_rect.matrix(), np.eye(4))
+    assert warped.process(2).left.shape == (warped.calibration.height, warped.calibration.width)
+    # The other modes are never tracked in the event cameras.
+    assert not Frontend(sequence, "fusion").tracks_event_cameras
 
 
 def test_prefetch_gives_the_synchronous_results(sequence) -> None:  # type: ignore[no-untyped-def]
@@ -427,7 +483,7 @@ def test_event_disparity_gives_the_frame_disparity_of_warped_event_pairs(sequenc
     """Issue 8: a point seen by both event cameras and warped into the frame cameras through
     the plane at ``depth_m`` keeps the event rig's parallax; the correction maps its
     disparity to the frame cameras' ``f b / Z``, at every depth."""
-    fe = Frontend(sequence, "events")
+    fe = Frontend(sequence, "events", _core.Config.from_toml("[fusion]\n" + WARPED_EVENTS))
     f, b = float(fe.frame_rect.K[0, 0]), float(fe.frame_rect.baseline_m)
     ke = fe.event_rect.K
     rng = np.random.default_rng(3)
@@ -451,7 +507,7 @@ def test_event_disparity_gives_the_frame_disparity_of_warped_event_pairs(sequenc
     assert 0.85 < scale < 0.95
     # Frames, or the correction turned off: identity.
     assert Frontend(sequence, "frames").event_disparity(depth_m) == (1.0, 0.0)
-    off = _core.Config.from_toml("[fusion]\nevent_disparity = false")
+    off = _core.Config.from_toml("[fusion]\nevent_disparity = false\n" + WARPED_EVENTS)
     assert Frontend(sequence, "events", off).event_disparity(depth_m) == (1.0, 0.0)
 
 
@@ -502,7 +558,7 @@ def test_event_stereo_reads_warped_event_matches_as_frame_pixels(sequence, depth
     ``Frontend.event_stereo`` reads the warped match back as the frame cameras' ``(u, v)`` and
     ``u_right``, at every depth and through any warp plane (``[fusion] event_stereo =
     "exact"``)."""
-    exact = _core.Config.from_toml('[fusion]\nevent_stereo = "exact"')
+    exact = _core.Config.from_toml('[fusion]\nevent_stereo = "exact"\n' + WARPED_EVENTS)
     fe = Frontend(sequence, "events", exact)
     k, b = fe.frame_rect.K, float(fe.frame_rect.baseline_m)
     ke = fe.event_rect.K
@@ -532,8 +588,11 @@ def test_event_stereo_reads_warped_event_matches_as_frame_pixels(sequence, depth
     assert fe.event_stereo(depth_m) is reading  # built once per depth
     # Frames, the correction turned off, or the disparity-only correction (the default): none.
     assert Frontend(sequence, "frames", exact).event_stereo(depth_m) is None
-    assert Frontend(sequence, "events").event_stereo(depth_m) is None
-    off = _core.Config.from_toml('[fusion]\nevent_disparity = false\nevent_stereo = "exact"')
+    warped = _core.Config.from_toml("[fusion]\n" + WARPED_EVENTS)
+    assert Frontend(sequence, "events", warped).event_stereo(depth_m) is None
+    off = _core.Config.from_toml(
+        '[fusion]\nevent_disparity = false\nevent_stereo = "exact"\n' + WARPED_EVENTS
+    )
     assert Frontend(sequence, "events", off).event_stereo(depth_m) is None
     with pytest.raises(ConfigError, match=re.escape("fusion.event_stereo")):
         _core.Config.from_toml('[fusion]\nevent_stereo = "nearest"')

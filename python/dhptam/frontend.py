@@ -16,7 +16,13 @@ For fusion frame k (time ``t_f^k = t_cam + t_exp / 2``) the pipeline is
    ``(1 − β) C + β D``, done in the warp's pass (``warp_and_fuse``).
 
 Modes: ``fusion`` (the above), ``frames`` (rectified, recovered frames only; no event is read)
-and ``events`` (the warped E3CT intensity alone, β = 1).
+and ``events`` (the E3CT intensity alone, β = 1). Mode ``events`` tracks in the rectified
+**event cameras** by default (``[fusion] events_geometry = "event"``): steps 4–6 are skipped,
+the normalised E3CT keeps its own pixels, with a black border of :data:`EVENT_BORDER_PX` so
+that detectors reach the image's edges (ORB ignores a 31-pixel band along the border), and
+:attr:`Frontend.tracked_calibration` / :attr:`Frontend.tracked_from_rect` tell the back-end
+and the trajectory writers which camera that is. ``events_geometry = "frame"`` warps the
+event images into the frame cameras as above.
 
 Illumination floods (``[fusion] flood_*``): a global lighting change makes every event pixel
 fire as the light ramps, so a window holds many times the usual event count, almost all of
@@ -68,12 +74,19 @@ from .fusion import choose_beta, fuse, recover_exposure, warp_and_fuse, warp_to_
 from .geometry import SE3, RectifiedStereo, StereoRig
 
 MODES = ("fusion", "frames", "events")
+
+#: Black border, in pixels, around the event images of mode ``events`` tracked in the event
+#: cameras (``[fusion] events_geometry = "event"``): wider than ORB's 31-pixel patch, so that
+#: keypoints can lie anywhere in the event camera's view, as they can when the event image is
+#: warped into the middle of a frame camera's.
+EVENT_BORDER_PX = 32
 _U8 = npt.NDArray[np.uint8]
 _F32 = npt.NDArray[np.float32]
 
 
 class RectifiedCalibration(NamedTuple):
-    """Rectified left frame camera intrinsics and stereo baseline, in the order of
+    """Rectified left camera intrinsics and stereo baseline (of the frame cameras, or of the
+    event cameras where mode ``events`` tracks in them), in the order of
     ``dhptam.StereoCalibration(fx, fy, cx, cy, baseline_m, width, height)``."""
 
     fx: float
@@ -304,6 +317,9 @@ class Frontend:
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
         self.event_disparity_enabled: bool = bool(fusion_cfg["event_disparity"])
         self.event_stereo_reading: str = str(fusion_cfg["event_stereo"])
+        #: Whether the event images are tracked in the rectified event cameras themselves
+        #: (mode ``events`` with ``[fusion] events_geometry = "event"``): no warp, no β.
+        self.tracks_event_cameras: bool = mode == "events" and fusion_cfg["events_geometry"] == "event"
         self._event_stereo: dict[float, _core.EventStereo] = {}
         # Event counts (left + right) of the windows seen, by frame index (flood reference).
         self._window_counts: dict[int, int] = {}
@@ -394,6 +410,42 @@ class Frontend:
         )
 
     @property
+    def warps_events(self) -> bool:
+        """Whether the event images are warped into the frame cameras (modes ``fusion`` and,
+        with ``[fusion] events_geometry = "frame"``, ``events``)."""
+        return self.mode != "frames" and not self.tracks_event_cameras
+
+    @property
+    def tracked_calibration(self) -> RectifiedCalibration:
+        """The rectified camera the images of :class:`FrontendFrame` are in (what the SLAM
+        back-end takes): :attr:`calibration`, except in mode ``events`` tracked in the event
+        cameras, where it is the rectified left event camera with the principal point and size
+        grown by the border of :data:`EVENT_BORDER_PX`, and the event cameras' baseline."""
+        if not self.tracks_event_cameras:
+            return self.calibration
+        k, pad = self.event_rect.K, EVENT_BORDER_PX
+        return RectifiedCalibration(
+            float(k[0, 0]),
+            float(k[1, 1]),
+            float(k[0, 2]) + pad,
+            float(k[1, 2]) + pad,
+            float(self.event_rect.baseline_m),
+            int(self.event_rect.width) + 2 * pad,
+            int(self.event_rect.height) + 2 * pad,
+        )
+
+    @property
+    def tracked_from_rect(self) -> SE3:
+        """Tracked camera ← rectified left frame camera: the identity, except in mode
+        ``events`` tracked in the event cameras (the rectified left event camera ← the
+        rectified left frame camera). The back-end's ``world_from_tracked`` poses give the
+        rectified frame camera as ``world_from_tracked @ tracked_from_rect``; the world frame
+        stays the first keyframe's tracked camera."""
+        if not self.tracks_event_cameras:
+            return SE3()
+        return self.frame_from_event["left"].inverse()
+
+    @property
     def rect_from_cam(self) -> SE3:
         """Rectified left frame camera ← left frame camera (a pure rotation). A trajectory of
         the rectified camera maps back with ``world_from_cam = world_from_rect @ rect_from_cam``."""
@@ -419,13 +471,16 @@ class Frontend:
                 return float(1.0 / np.median(valid))
         return 0.0
 
-    def camera_poses(self, world_from_rect: npt.ArrayLike) -> npt.NDArray[np.float64]:
+    def camera_poses(self, world_from_tracked: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """``world_from_cam`` (N, 4, 4) of the left frame camera from the tracker's
-        ``world_from_rect`` (N, 4, 4) poses of the rectified left camera."""
-        poses = np.asarray(world_from_rect, np.float64)
+        ``world_from_tracked`` (N, 4, 4) poses of the tracked camera (the rectified left frame
+        camera, or the rectified left event camera: :attr:`tracked_from_rect`)."""
+        poses = np.asarray(world_from_tracked, np.float64)
         if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-            raise InputError(f"world_from_rect must be (N, 4, 4), got {poses.shape}", field="world_from_rect")
-        return poses @ self.rect_from_cam.matrix()
+            raise InputError(
+                f"world_from_tracked must be (N, 4, 4), got {poses.shape}", field="world_from_tracked"
+            )
+        return poses @ (self.tracked_from_rect @ self.rect_from_cam).matrix()
 
     def __len__(self) -> int:
         return self.stop - self.start
@@ -583,11 +638,23 @@ class Frontend:
     ) -> tuple[dict[str, _F32], dict[str, _U8]]:
         """The raw E3CTs (left, right) normalised with ``scales`` inside the warp (tap by tap,
         the same values as normalise() then warp), warped through the plane at ``depth_m``, and
-        their blend with ``frames`` at ``betas`` done in the same pass."""
+        their blend with ``frames`` at ``betas`` done in the same pass. Tracked in the event
+        cameras (:attr:`tracks_event_cameras`), the same pass copies each normalised E3CT
+        into the middle of a black image :data:`EVENT_BORDER_PX` wider on every side (the
+        identity map: every tap on a pixel centre), β = 1."""
         k_event = self.event_rect.K
-        k_frame = self.frame_rect.K
         ke = [k_event[0, 0], k_event[1, 1], k_event[0, 2], k_event[1, 2]]
-        kf = [k_frame[0, 0], k_frame[1, 1], k_frame[0, 2], k_frame[1, 2]]
+        if self.tracks_event_cameras:
+            calib = self.tracked_calibration
+            kf = [calib.fx, calib.fy, calib.cx, calib.cy]
+            blank = np.zeros((calib.height, calib.width), np.uint8)
+            targets = {"left": blank, "right": blank}
+            frame_from_event = {"left": SE3(), "right": SE3()}
+            depth_m, align_px = 0.0, (0.0, 0.0)
+        else:
+            k_frame = self.frame_rect.K
+            kf = [k_frame[0, 0], k_frame[1, 1], k_frame[0, 2], k_frame[1, 2]]
+            targets, frame_from_event, align_px = frames, self.frame_from_event, self.align_px
         out: dict[str, _F32] = {}
         fused: dict[str, _U8] = {}
         for side, tensor in zip(("left", "right"), tensors, strict=True):
@@ -596,11 +663,11 @@ class Frontend:
                 tensor,
                 ke,
                 kf,
-                self.frame_from_event[side],
-                frames[side],
+                frame_from_event[side],
+                targets[side],
                 betas[side][1],
                 depth_m=depth_m,
-                align_px=self.align_px,
+                align_px=align_px,
                 scales=scales,
             )
         return out, fused
@@ -625,7 +692,8 @@ class Frontend:
         """``(scale, offset_px)`` that map the stereo disparity ``d`` of the event images
         warped into the frame cameras through the plane at ``depth_m`` (0: infinity) to the
         frame cameras' disparity ``scale · d + offset_px`` (``System.track``'s
-        ``disparity``).
+        ``disparity``). The identity when the event cameras themselves are tracked
+        (:attr:`tracks_event_cameras`).
 
         A warped event pair keeps the event cameras' parallax: a point at depth ``Z`` shows
         ``f b_e / Z − f (b_e − b_f) / D`` through the plane at ``D``, with ``b_e`` and
@@ -634,7 +702,7 @@ class Frontend:
         ``scale = b_f / b_e`` and ``offset_px = scale · f (b_e − b_f) / D``. Identity in mode
         ``frames``, with ``[fusion] event_disparity = false``, or when the event cameras
         share the frame cameras' centres."""
-        if self.mode == "frames" or not self.event_disparity_enabled:
+        if not self.warps_events or not self.event_disparity_enabled:
             return (1.0, 0.0)
         b_f = float(self.frame_rect.baseline_m)
         left = np.asarray(self.frame_from_event["left"].translation, np.float64)
@@ -654,8 +722,9 @@ class Frontend:
         into the rectified event cameras, triangulated with the event pair, projected into
         the rectified frame cameras. ``None`` in mode ``frames``, with ``[fusion]
         event_disparity = false`` or ``event_stereo = "disparity"`` (then
-        :meth:`event_disparity` applies). Built once per depth."""
-        if self.mode == "frames" or not self.event_disparity_enabled or self.event_stereo_reading != "exact":
+        :meth:`event_disparity` applies), and when the event cameras themselves are tracked.
+        Built once per depth."""
+        if not self.warps_events or not self.event_disparity_enabled or self.event_stereo_reading != "exact":
             return None
         depth = float(depth_m)
         reading = self._event_stereo.get(depth)
@@ -750,6 +819,8 @@ class Frontend:
         depth = self.plane_depth_m if depth_m is None else float(depth_m)
         if not (np.isfinite(depth) and depth >= 0.0):
             raise InputError(f"depth_m must be >= 0 (0: infinity), got {depth_m!r}", field="depth_m")
+        if self.tracks_event_cameras:
+            depth = 0.0  # nothing is warped
         stats = prepared.stats
         betas: dict[str, tuple[str, float]] = {}
         for side in ("left", "right"):

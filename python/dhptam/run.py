@@ -180,7 +180,9 @@ def _progress(total: int, enabled: bool, desc: str) -> Any:
 class _Outputs:
     """Collects per-frame records and writes every output file atomically."""
 
-    def __init__(self, out: Path, rect_from_cam: Any, extra_formats: tuple[str, ...] = ()) -> None:
+    def __init__(
+        self, out: Path, tracked_from_rect: Any, rect_from_cam: Any, extra_formats: tuple[str, ...] = ()
+    ) -> None:
         from .trajectory import TRAJECTORY_FORMATS
 
         for fmt in extra_formats:
@@ -191,6 +193,9 @@ class _Outputs:
                 )
         self.extra_formats = extra_formats
         self.out = out
+        # The back-end's poses are of the tracked camera (Frontend.tracked_from_rect: the
+        # rectified left frame camera, or in mode events the rectified left event camera).
+        self.tracked_from_rect = tracked_from_rect
         self.rect_from_cam = rect_from_cam
         # Per-frame rows are spooled to an unnamed temporary file as they come, so that memory
         # stays bounded on long runs (a dict per frame costs ~1 kB: 50 MB for 30 minutes).
@@ -201,6 +206,10 @@ class _Outputs:
         self.meta: dict[str, Any] = {}
         self.recorder: Any = None  # a dhptam.datasets.mcap.McapRecorder with --record
         self.record_path: Path | None = None
+
+    def _rectified(self, t_ns: Any, poses: Any) -> tuple[Any, Any]:
+        """The back-end's ``(t_ns, world_from_tracked)`` as the rectified left frame camera's."""
+        return t_ns, (poses @ self.tracked_from_rect.matrix() if len(poses) else poses)
 
     def record(self, row: dict[str, Any]) -> None:
         if self.count == 0:
@@ -218,7 +227,7 @@ class _Outputs:
         from .trajectory import atomic_write_text, write_tum
 
         files: dict[str, Path] = {}
-        t_ns, poses = system.trajectory()
+        t_ns, poses = self._rectified(*system.trajectory())
         path = self.out / "trajectory.tum"
         write_tum(
             path,
@@ -237,7 +246,7 @@ class _Outputs:
             header="timestamp[s] tx ty tz qx qy qz qw (world_from_cam, left frame camera)",
         )
         files["trajectory_frame_left"] = path
-        kt, kposes = system.keyframe_trajectory()
+        kt, kposes = self._rectified(*system.keyframe_trajectory())
         path = self.out / "keyframes.tum"
         write_tum(
             path,
@@ -264,7 +273,7 @@ class _Outputs:
         write_ply(str(path), system.map_points())
         files["map"] = path
         if self.recorder is not None:
-            t_ns_rec, frame_cam_rec = system.trajectory()
+            t_ns_rec, frame_cam_rec = self._rectified(*system.trajectory())
             if len(frame_cam_rec):
                 frame_cam_rec = frame_cam_rec @ self.rect_from_cam.matrix()
             # Finished once: a repeated write (Ctrl-C while finishing) keeps the log written.
@@ -411,10 +420,12 @@ def run(
             frontend.config = with_setting(frontend.config, "features", "max_keypoints", budget)
         if extractor is None:
             extractor = features_from_config(frontend.config)
-        system = System(StereoCalibration(*frontend.calibration), frontend.config, threaded=threaded)
-        outputs = _Outputs(out_dir, frontend.rect_from_cam, tuple(trajectory_formats))
+        system = System(StereoCalibration(*frontend.tracked_calibration), frontend.config, threaded=threaded)
+        outputs = _Outputs(
+            out_dir, frontend.tracked_from_rect, frontend.rect_from_cam, tuple(trajectory_formats)
+        )
         outputs.meta["sequence"] = str(Path(sequence).resolve())
-        sink = _viz_sink(viz, out_dir, frontend.calibration, resources)
+        sink = _viz_sink(viz, out_dir, frontend.tracked_calibration, resources)
         reference = None
         if seq.ground_truth is not None:
             reference = (seq.ground_truth.t_ns, seq.ground_truth.world_from_cam)
@@ -629,7 +640,7 @@ def _track_all(
     # depth of the map points frame k-1 was tracked with, so the events' parallax against the
     # frame cameras is removed where the scene is (the E3CT of frame k is computed ahead, its
     # warp, blend and features wait for frame k-1's tracking).
-    feed = _DepthFeed(frontend.start, frontend.mode != "frames" and frontend.warp_depth == "tracked")
+    feed = _DepthFeed(frontend.start, frontend.warps_events and frontend.warp_depth == "tracked")
 
     # The depth the last frame was warped through (the quantisation keeps it while the tracked
     # depth stays within one bin of it).
