@@ -94,6 +94,8 @@ def test_calibration_and_rect_from_cam_describe_the_rectified_left_camera(sequen
 
 def test_events_mode_tracks_in_the_event_cameras_and_maps_poses_to_the_frame_camera(sequence) -> None:  # type: ignore[no-untyped-def]
     fe = Frontend(sequence, "events", prefetch=0)
+    # The tiny rig's event cameras are sensors of their own: "auto" (the default) tracks them.
+    assert fe.events_geometry == "auto" and not fe.shares_frame_pixels
     assert fe.tracks_event_cameras and not fe.warps_events
     pad = EVENT_BORDER_PX
     fx, fy, cx, cy, baseline, width, height = fe.tracked_calibration

@@ -84,7 +84,7 @@ def test_events_mode_tracks_in_the_event_cameras_and_writes_the_frame_cameras_po
     result = run(sim_desk_run, tmp_path, mode="events", features="orb", progress=False, threaded=False)
     assert result.frames == 24 and result.states.get("lost", 0) == 0, result.states
     config = _core.Config.from_file(tmp_path / "config.toml").to_dict()
-    assert config["fusion"]["events_geometry"] == "event"
+    assert config["fusion"]["events_geometry"] == "auto"  # the desk rig's event cameras: tracked
     # The world frame is the first keyframe's tracked camera, the rectified left event camera:
     # written as the rectified left frame camera, the first keyframe sits at the rig's
     # event-to-frame offset (3 cm) from the origin.

@@ -15,6 +15,7 @@ from dhptam import SE3, _core
 from dhptam.cli import main
 from dhptam.datasets import load_tumvie
 from dhptam.errors import InputError, ParseError
+from dhptam.frontend import EVENT_BORDER_PX
 from dhptam.sim import (
     GROUND_TRUTH_FILE,
     IMU_FROM_MARKER,
@@ -325,6 +326,13 @@ def test_a_shared_sensor_rig_reads_frames_and_events_from_the_same_pixels(tmp_pa
         frame = fe.process(3)
         assert frame.left.shape == (96, 128) and frame.events_left is not None
         assert frame.events_left.shape[:2] == (96, 128)
+        # Mode events stays in these shared pixels under [fusion] events_geometry = "auto"
+        # (the default); "event" still tracks the same pixels with the detectors' border.
+        events = Frontend(seq, "events", prefetch=0)
+        assert events.shares_frame_pixels and not events.tracks_event_cameras
+        assert events.tracked_calibration == events.calibration
+        forced = Frontend(seq, "events", _core.Config.from_toml('[fusion]\nevents_geometry = "event"\n'))
+        assert forced.tracks_event_cameras and forced.tracked_calibration.width == 128 + 2 * EVENT_BORDER_PX
     result = run(
         summary.path, tmp_path / "out", mode="fusion", features="orb", progress=False, threaded=False
     )

@@ -17,7 +17,9 @@ For fusion frame k (time ``t_f^k = t_cam + t_exp / 2``) the pipeline is
 
 Modes: ``fusion`` (the above), ``frames`` (rectified, recovered frames only; no event is read)
 and ``events`` (the E3CT intensity alone, β = 1). Mode ``events`` tracks in the rectified
-**event cameras** by default (``[fusion] events_geometry = "event"``): steps 4–6 are skipped,
+**event cameras** where they are sensors of their own (``[fusion] events_geometry = "auto"``,
+the default, or ``"event"``; a DAVIS-like rig, whose events come from the frame cameras'
+pixels, stays in the frame geometry under ``"auto"``): steps 4–6 are skipped,
 the normalised E3CT keeps its own pixels, with a black border of :data:`EVENT_BORDER_PX` so
 that detectors reach the image's edges (ORB ignores a 31-pixel band along the border), and
 :attr:`Frontend.tracked_calibration` / :attr:`Frontend.tracked_from_rect` tell the back-end
@@ -151,16 +153,19 @@ class FrontendFrame:
     """One processed stereo frame.
 
     ``left``/``right`` are what the features run on: uint8 ``(H, W)`` images in the rectified
-    frame cameras (fused, frames or events according to the mode). ``frame_left``/
-    ``frame_right`` are the rectified frames alone and ``events_left``/``events_right`` the
-    normalised E3CT warped into them, ``(H, W, C)`` float32 in [0, 1] (``None`` in mode
+    frame cameras (fused, frames or events according to the mode), or in mode ``events``
+    tracked in the event cameras, in those (:attr:`Frontend.tracked_calibration`).
+    ``frame_left``/``frame_right`` are the rectified frames alone and ``events_left``/
+    ``events_right`` the normalised E3CT in the images' camera (warped into the frame cameras,
+    or bordered in the event cameras), ``(H, W, C)`` float32 in [0, 1] (``None`` in mode
     ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode
     (``aps``, ``dvs``, ``frames``, ``events``). ``flood``: the event window is an
     illumination flood (:func:`is_flood`; always ``False`` in mode ``frames``).
     ``warp_depth_m``: depth in metres of the plane the events were warped through (0:
-    infinity; 0 in mode ``frames``). ``stretched``: whether the left/right frame failed the
-    exposure test and was stretched to full contrast (:func:`dhptam.fusion.recover_exposure`;
-    ``frame_left``/``frame_right`` are then the stretched frames).
+    infinity; 0 in mode ``frames`` and where nothing is warped). ``stretched``: whether the
+    left/right frame failed the exposure test and was stretched to full contrast
+    (:func:`dhptam.fusion.recover_exposure`; ``frame_left``/``frame_right`` are then the
+    stretched frames).
     """
 
     index: int
@@ -317,9 +322,11 @@ class Frontend:
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
         self.event_disparity_enabled: bool = bool(fusion_cfg["event_disparity"])
         self.event_stereo_reading: str = str(fusion_cfg["event_stereo"])
+        self.events_geometry: str = str(fusion_cfg["events_geometry"])
         #: Whether the event images are tracked in the rectified event cameras themselves
-        #: (mode ``events`` with ``[fusion] events_geometry = "event"``): no warp, no β.
-        self.tracks_event_cameras: bool = mode == "events" and fusion_cfg["events_geometry"] == "event"
+        #: (mode ``events`` with ``[fusion] events_geometry = "event"``, or ``"auto"`` on a
+        #: rig whose event cameras are not its frame cameras): no warp, no β. Set below.
+        self.tracks_event_cameras = False
         self._event_stereo: dict[float, _core.EventStereo] = {}
         # Event counts (left + right) of the windows seen, by frame index (flood reference).
         self._window_counts: dict[int, int] = {}
@@ -376,6 +383,8 @@ class Frontend:
                 @ SE3(self._rect_rotation(self.event_rect, side)).inverse()
                 for side in ("left", "right")
             }
+            if mode == "events" and self.events_geometry != "frame":
+                self.tracks_event_cameras = self.events_geometry == "event" or not self.shares_frame_pixels
         if plane_depth == "auto":
             if mode != "frames":
                 self.plane_depth_m = self.median_scene_depth()
@@ -407,6 +416,25 @@ class Frontend:
             float(self.frame_rect.baseline_m),
             int(self.frame_rect.width),
             int(self.frame_rect.height),
+        )
+
+    @property
+    def shares_frame_pixels(self) -> bool:
+        """Whether the rectified event cameras are the rectified frame cameras (same pose,
+        intrinsics and size on both sides, as on a DAVIS sensor): warping the events into the
+        frame cameras is then the identity. ``False`` in mode ``frames``."""
+        if self.mode == "frames":
+            return False
+        same_pose = all(
+            float(np.linalg.norm(self.frame_from_event[side].translation)) < 1e-6
+            and float(self.frame_from_event[side].rotation.angle()) < 1e-6
+            for side in ("left", "right")
+        )
+        return (
+            same_pose
+            and (self.event_rect.width, self.event_rect.height)
+            == (self.frame_rect.width, self.frame_rect.height)
+            and bool(np.allclose(self.event_rect.K, self.frame_rect.K, rtol=0.0, atol=1e-6))
         )
 
     @property
