@@ -300,9 +300,11 @@ config_section! {
         /// event images warped into the rectified frame cameras like the fusion mode's;
         /// "auto", "event" where the event cameras are sensors of their own and "frame" where
         /// they are the frame cameras' pixels (a DAVIS-like rig: the warp is the identity).
-        /// "event" lowered the `events` error on 20 of 24 runs with separate event cameras,
-        /// and raised it on all 3 DAVIS-like runs, where only the border differs
-        /// (docs/BENCHMARKS.md, "Mode `events` in the event cameras' own geometry").
+        /// "event" lowered the `events` error on 26 of 30 short runs with separate event
+        /// cameras and raised it on both trajectories played whole (25 s, 60 s: "frame" is
+        /// the setting to try for long fast sequences), and on all 3 DAVIS-like runs, where
+        /// only the border differs (docs/BENCHMARKS.md, "Mode `events` in the event cameras'
+        /// own geometry").
         /// The other modes always work in the frame cameras.
         events_geometry: String = "auto".to_string(),
         /// Bin width of the tracked warp depth, in pixels of event→frame parallax: the depth
