@@ -4,7 +4,7 @@
 //! stays quick; `tests/test_system.py` runs the same scenarios at ≈ 600 features a frame.
 
 use dhptam_core::config::Config;
-use dhptam_core::fusion::{Depth, EventStereo};
+use dhptam_core::fusion::{Depth, EventStereo, FusionMode};
 use dhptam_core::geometry::{Pinhole, Se3, So3};
 use dhptam_core::matching::Descriptors;
 use dhptam_core::slam::loop_closing::verify_loop;
@@ -53,6 +53,43 @@ fn tracks_every_frame_of_a_noisy_sequence_with_outliers() {
     );
     assert!(e < 0.03, "ATE {e} m");
     assert!(kfs > 2 && kfs < frames.len(), "{kfs} keyframes");
+}
+
+#[test]
+fn mode_events_makes_keyframes_with_its_own_floor() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 40,
+        turns: 0.1,
+        seed: 3,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    let run = |mode: FusionMode, events_floor: u32| {
+        let mut config = Config::default();
+        config.fusion.mode = mode;
+        config.tracking.events_keyframe_min_tracked = events_floor;
+        let mut s = System::new(o.calib, config, false).unwrap();
+        frames.iter().for_each(|f| {
+            track(&mut s, f);
+        });
+        (s.keyframe_trajectory().len(), s.trajectory())
+    };
+    let floor = Config::default().tracking.events_keyframe_min_tracked;
+    let (fusion, fusion_traj) = run(FusionMode::Fusion, floor);
+    let (events, _) = run(FusionMode::Events, floor);
+    let (events_at_50, events_at_50_traj) = run(FusionMode::Events, 50);
+    eprintln!("keyframes: fusion {fusion}, events {events}, events with floor 50 {events_at_50}");
+    assert!(
+        events > fusion,
+        "events {events} keyframes, fusion {fusion}"
+    );
+    // The floor is the only difference mode `events` makes to the back-end.
+    assert_eq!(events_at_50, fusion);
+    assert_eq!(fusion_traj.len(), events_at_50_traj.len());
+    for (x, y) in fusion_traj.iter().zip(&events_at_50_traj) {
+        assert_eq!(x.1.matrix(), y.1.matrix());
+    }
 }
 
 #[test]

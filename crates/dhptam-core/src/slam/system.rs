@@ -22,7 +22,7 @@ use super::tracking::{
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
 use crate::error::{ensure_sigmas, Error, Result};
-use crate::fusion::EventStereo;
+use crate::fusion::{EventStereo, FusionMode};
 use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors};
 use crate::place::PlaceDatabase;
@@ -393,9 +393,13 @@ fn spawn(name: &str, f: impl FnOnce() + Send + 'static) -> Result<JoinHandle<()>
 
 impl System {
     /// A system for `calib` with `config` (validated); `threaded` runs mapping on its own
-    /// thread, otherwise inline and deterministic.
-    pub fn new(calib: StereoCalibration, config: Config, threaded: bool) -> Result<Self> {
+    /// thread, otherwise inline and deterministic. In `[fusion] mode = "events"` the
+    /// tracker's keyframe floor is `[tracking] events_keyframe_min_tracked`.
+    pub fn new(calib: StereoCalibration, mut config: Config, threaded: bool) -> Result<Self> {
         config.validate()?;
+        if config.fusion.mode == FusionMode::Events {
+            config.tracking.keyframe_min_tracked = config.tracking.events_keyframe_min_tracked;
+        }
         let shared = Arc::new(Shared {
             map: RwLock::new(Map::default()),
             timings: Mutex::new(BTreeMap::new()),
