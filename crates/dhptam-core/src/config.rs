@@ -602,6 +602,14 @@ config_section! {
         max_disagreement_deg: f64 = 2.0,
         /// See `max_disagreement_deg`: largest difference in translation, metres.
         max_disagreement_m: f64 = 0.1,
+        /// A verified loop between two keyframes of one map (one segment, or segments that
+        /// loops have joined) is rejected when it would turn the query keyframe by more than
+        /// this, degrees: tracking does not drift that far, a look-alike place does. Loops
+        /// that join a new map segment to the rest are exempt, since that segment's pose is a
+        /// guess. True loops in the benchmarks turned it by at most 21°; one false one, on a
+        /// place seen from the opposite side, by 166° (docs/BENCHMARKS.md, "A keyframe floor
+        /// of its own for mode `events`").
+        max_correction_deg: f64 = 45.0,
     }
 }
 // --- end SLAM back-end ---
@@ -789,6 +797,12 @@ impl LoopClosingConfig {
             self.max_disagreement_m >= 0.0,
             "a non-negative number",
             self.max_disagreement_m,
+        )?;
+        check(
+            "loop_closing.max_correction_deg",
+            (0.0..=180.0).contains(&self.max_correction_deg),
+            "between 0 and 180 (180: off)",
+            self.max_correction_deg,
         )
     }
 }

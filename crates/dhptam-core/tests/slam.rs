@@ -7,7 +7,8 @@ use dhptam_core::config::Config;
 use dhptam_core::fusion::{Depth, EventStereo, FusionMode};
 use dhptam_core::geometry::{Pinhole, Se3, So3};
 use dhptam_core::matching::Descriptors;
-use dhptam_core::slam::loop_closing::verify_loop;
+use dhptam_core::place::{embedding, PlaceDatabase};
+use dhptam_core::slam::loop_closing::{detect_and_close, verify_loop};
 use dhptam_core::slam::synthetic::{generate, SyntheticFrame, SyntheticOptions};
 use dhptam_core::slam::tracking::{
     insert_keyframe, reference_motion, retrack_after_correction, stereo_match, track_local_map,
@@ -18,6 +19,7 @@ use dhptam_core::slam::{
     TrackResult, TrackState,
 };
 use nalgebra::{Matrix3, Vector2, Vector3};
+use std::sync::{Mutex, RwLock};
 
 mod common;
 use common::{ate, frame_features, positions, track, truth_positions, view_features};
@@ -506,6 +508,11 @@ fn the_centre_prior_holds_a_weakly_placed_keyframe_in_the_local_adjustment() {
 /// Two keyframes at the two ends of a loop (a bit more than one turn apart), each with its own
 /// points; the query's whole part of the map is displaced by a drift transform.
 fn loop_pair() -> (Map, u64, u64) {
+    loop_pair_with_drift(3.0)
+}
+
+/// `loop_pair` with the drift turning the query's part by `drift_deg` about the vertical.
+fn loop_pair_with_drift(drift_deg: f64) -> (Map, u64, u64) {
     let o = SyntheticOptions {
         landmarks: 1500,
         frames: 200,
@@ -516,7 +523,7 @@ fn loop_pair() -> (Map, u64, u64) {
     let frames = generate(&o);
     let (first, last) = (&frames[0], &frames[frames.len() - 1]);
     let drift = Se3::new(
-        So3::exp(&Vector3::new(0.0, 3f64.to_radians(), 0.0)),
+        So3::exp(&Vector3::new(0.0, drift_deg.to_radians(), 0.0)),
         Vector3::new(0.2, 0.1, -0.3),
     );
     let mut map = Map::default();
@@ -605,6 +612,43 @@ fn loop_verification_needs_both_directions_to_agree() {
     let (r, _) = check.disagreement.unwrap();
     assert!(r > lc.max_disagreement_deg, "{check:?}");
     assert!(!check.accepted && m.is_none());
+}
+
+#[test]
+fn a_loop_that_would_turn_a_keyframe_of_one_map_too_far_is_rejected() {
+    let calib = SyntheticOptions::default().calib;
+    let (map, query, candidate) = loop_pair_with_drift(60.0);
+    let close = |mut map: Map, max_correction_deg: f64| {
+        let mut config = Config::default();
+        // Synthetic descriptors are random per frame: place recognition is not under test.
+        config.loop_closing.skip_recent = 0;
+        config.loop_closing.min_score = 0.0;
+        config.loop_closing.max_correction_deg = max_correction_deg;
+        let mut db = PlaceDatabase::new();
+        let e = embedding(map.keyframes[&candidate].descriptors.view()).unwrap();
+        db.add(candidate, e).unwrap();
+        let loops_before = map.loops.len();
+        let lock = RwLock::new(std::mem::take(&mut map));
+        let found = detect_and_close(
+            &lock,
+            &Mutex::new(db),
+            query,
+            &calib,
+            &config.tracking,
+            &config.loop_closing,
+        )
+        .unwrap();
+        let map = lock.into_inner().unwrap();
+        assert_eq!(map.loops.len() - loops_before, usize::from(found.is_some()));
+        found
+    };
+    // The 60° drift is rigid, so the loop verifies; within one map it turns the query too far.
+    assert_eq!(close(map.clone(), 180.0), Some(candidate));
+    assert_eq!(close(map.clone(), 45.0), None);
+    // A query that starts a map segment of its own has a guessed pose: the loop joins it.
+    let mut segmented = map;
+    segmented.segment_starts.insert(query);
+    assert_eq!(close(segmented, 45.0), Some(candidate));
 }
 
 fn observations_per_point(map: &Map) -> f64 {

@@ -288,19 +288,32 @@ pub fn detect_and_close(
             return Ok(None);
         }
         let mut found = None;
+        let mut segments = Segments::of(&map);
         for (c, score) in candidates {
-            let (check, m) = verify_loop(&map, kf, c, calib, tracking, cfg)?;
-            let agreement = match check.disagreement {
+            let (check, mut m) = verify_loop(&map, kf, c, calib, tracking, cfg)?;
+            let mut agreement = match check.disagreement {
                 Some((r, t)) => format!(
                     "relative poses differ by {r:.2} deg / {t:.3} m (limits {:.2} deg / {:.3} m)",
                     cfg.max_disagreement_deg, cfg.max_disagreement_m
                 ),
                 None => "no relative pose to compare".to_string(),
             };
+            // Within one map the tracked poses are measurements: a loop that would turn the
+            // query keyframe by more than tracking can drift matched a look-alike place.
+            if let Some(turn) = m.as_ref().map(|m| correction_deg(k.world_from_cam, m)) {
+                if turn > cfg.max_correction_deg && segments.same_map(kf, c) {
+                    agreement += &format!(
+                        "; it would turn the keyframe by {turn:.1} deg within one map (limit \
+                         {:.1} deg)",
+                        cfg.max_correction_deg
+                    );
+                    m = None;
+                }
+            }
             log::info!(
                 "loop: keyframe {kf}: candidate {c} (score {score:.3}) {}: forward {} matches / {} \
                  PnP inliers, backward {} matches / {} PnP inliers (at least {} needed), {agreement}",
-                if check.accepted { "accepted" } else { "rejected" },
+                if m.is_some() { "accepted" } else { "rejected" },
                 check.forward.0,
                 check.forward.1,
                 check.backward.0,
@@ -320,6 +333,14 @@ pub fn detect_and_close(
     let mut map = super::write_lock(map_lock);
     correct(&mut map, kf, &m)?;
     Ok(Some(m.candidate))
+}
+
+/// How far, in degrees, a loop match `m` turns its query keyframe from `world_from_cam`.
+fn correction_deg(world_from_cam: Se3, m: &PlaceMatch) -> f64 {
+    (world_from_cam.inverse() * m.cam_from_world.inverse())
+        .rotation
+        .angle()
+        .to_degrees()
 }
 
 /// Optimises the keyframe pose graph with the loop edge, moves the points and fuses the loop
@@ -343,17 +364,11 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
     // Map segments (issue 10): the relative pose across an unjoined segment boundary is a
     // guess, not a measurement, so no odometry edge crosses it; each segment is one group of
     // keyframes, and loops (earlier ones and this one) join groups.
-    let starts: Vec<u64> = map
-        .segment_starts
-        .iter()
-        .copied()
-        .filter(|s| index.contains_key(s))
-        .collect();
-    let segment = |id: u64| starts.partition_point(|&s| s <= id);
-    let mut groups = Groups::new(starts.len() + 1);
-    for (a, b) in map.loops.iter().chain([&(kf, m.candidate)]) {
-        groups.join(segment(*a), segment(*b));
-    }
+    let Segments { starts, mut groups } = {
+        let mut s = Segments::of(map);
+        s.join(kf, m.candidate);
+        s
+    };
     let mut edges = Vec::new();
     for i in 1..ids.len() {
         if starts.binary_search(&ids[i]).is_err() {
@@ -387,10 +402,13 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
     };
     let report = solve_pose_graph3(&mut graph, &PoseGraphOptions::default())?;
     log::info!(
-        "loop: pose graph over {} keyframes, cost {:.3e} → {:.3e}",
+        "loop: pose graph over {} keyframes, cost {:.3e} → {:.3e}; the loop moves keyframe {kf} \
+         by {:.3} m / {:.2} deg",
         ids.len(),
         report.initial_cost,
-        report.final_cost
+        report.final_cost,
+        (old[qi].inverse() * corrected_query).translation.norm(),
+        correction_deg(old[qi], m)
     );
     // Per keyframe: new_world_from_old_world.
     let delta: Vec<Se3> = graph
@@ -450,6 +468,46 @@ fn correct(map: &mut Map, kf: u64, m: &PlaceMatch) -> Result<()> {
 
 /// Disjoint sets over map segments (union by smaller root, path halving).
 struct Groups(Vec<usize>);
+
+/// The map's segments (the ids of their first keyframes, each still in the map) and the
+/// groups that loops have joined them into.
+struct Segments {
+    starts: Vec<u64>,
+    groups: Groups,
+}
+
+impl Segments {
+    fn of(map: &Map) -> Self {
+        let starts: Vec<u64> = map
+            .segment_starts
+            .iter()
+            .copied()
+            .filter(|s| map.keyframes.contains_key(s))
+            .collect();
+        let groups = Groups::new(starts.len() + 1);
+        let mut s = Self { starts, groups };
+        for &(a, b) in &map.loops {
+            s.join(a, b);
+        }
+        s
+    }
+
+    /// The segment of keyframe `id`: 0 before the first start, i after the i-th.
+    fn segment(&self, id: u64) -> usize {
+        self.starts.partition_point(|&s| s <= id)
+    }
+
+    fn join(&mut self, a: u64, b: u64) {
+        let (a, b) = (self.segment(a), self.segment(b));
+        self.groups.join(a, b);
+    }
+
+    /// Whether keyframes `a` and `b` lie in one map: one segment, or segments joined by loops.
+    fn same_map(&mut self, a: u64, b: u64) -> bool {
+        let (a, b) = (self.segment(a), self.segment(b));
+        self.groups.find(a) == self.groups.find(b)
+    }
+}
 
 impl Groups {
     fn new(n: usize) -> Self {
