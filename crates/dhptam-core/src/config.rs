@@ -407,15 +407,16 @@ config_section! {
         /// New keyframe also whenever fewer points than this are tracked.
         keyframe_min_tracked: u32 = 50,
         /// `keyframe_min_tracked` of mode `events` (`[fusion] mode = "events"`), which
-        /// replaces it there. An event image pair matches 3–4× fewer points than a frame pair
-        /// and its map points go stale as soon as the direction of motion changes what the
-        /// events show, so a keyframe whose own count was set by a weak frame kept new ones
-        /// from being made for tens of frames on fast translations (one every 40 frames on
-        /// the quadrotor trajectory) while the error grew. 150 lowered the `events` error on
-        /// all 9 demo seeds (mean 2.60 → 1.86 % of the path) and on both normal-light real
-        /// trajectories; the same floor in `fusion` changed nothing and in `frames` cost
-        /// accuracy (docs/BENCHMARKS.md, "A keyframe floor of its own for mode `events`").
-        events_keyframe_min_tracked: u32 = 150,
+        /// replaces it there; the same 50 by default. An event image pair matches 3–4× fewer
+        /// points than a frame pair, so a keyframe whose own count was set by a weak frame can
+        /// hold off new ones on fast translations (up to 19 frames, about 1 s, on the
+        /// quadrotor trajectory). 150 about doubles the keyframes of mode `events`: with
+        /// `--sync` it lowered the error on all 9 demo seeds (mean 2.60 → 1.86 % of the path)
+        /// and on both normal-light 8 s real trajectories, but threaded (the default back-end)
+        /// it changed nothing beyond run-to-run spread, and the quadrotor trajectory played
+        /// whole went 0.53 → 1.05 % (docs/BENCHMARKS.md, "A keyframe floor of its own for
+        /// mode `events`").
+        events_keyframe_min_tracked: u32 = 50,
         /// The first keyframe needs at least this many triangulated stereo matches.
         init_min_points: u32 = 30,
         /// When a frame can be neither tracked nor relocalised, start a new map segment from
@@ -606,7 +607,7 @@ config_section! {
         /// loops have joined) is rejected when it would turn the query keyframe by more than
         /// this, degrees: tracking does not drift that far, a look-alike place does. Loops
         /// that join a new map segment to the rest are exempt, since that segment's pose is a
-        /// guess. True loops in the benchmarks turned it by at most 21°; one false one, on a
+        /// guess. True loops in the benchmarks turned it by at most 20.5°; a false one, on a
         /// place seen from the opposite side, by 166° (docs/BENCHMARKS.md, "A keyframe floor
         /// of its own for mode `events`").
         max_correction_deg: f64 = 45.0,

@@ -58,7 +58,7 @@ fn tracks_every_frame_of_a_noisy_sequence_with_outliers() {
 }
 
 #[test]
-fn mode_events_makes_keyframes_with_its_own_floor() {
+fn mode_events_takes_its_own_keyframe_floor() {
     let o = SyntheticOptions {
         landmarks: 1000,
         frames: 40,
@@ -77,9 +77,8 @@ fn mode_events_makes_keyframes_with_its_own_floor() {
         });
         (s.keyframe_trajectory().len(), s.trajectory())
     };
-    let floor = Config::default().tracking.events_keyframe_min_tracked;
-    let (fusion, fusion_traj) = run(FusionMode::Fusion, floor);
-    let (events, _) = run(FusionMode::Events, floor);
+    let (fusion, fusion_traj) = run(FusionMode::Fusion, 150);
+    let (events, _) = run(FusionMode::Events, 150);
     let (events_at_50, events_at_50_traj) = run(FusionMode::Events, 50);
     eprintln!("keyframes: fusion {fusion}, events {events}, events with floor 50 {events_at_50}");
     assert!(
