@@ -1319,6 +1319,23 @@ mod tests {
     }
 
     #[test]
+    fn loop_correction_limit_is_checked() {
+        let off = Config::from_toml_str("[loop_closing]\nmax_correction_deg = 180\n", "l.toml");
+        assert_eq!(off.unwrap().loop_closing.max_correction_deg, 180.0);
+        for bad in ["-1.0", "181.0"] {
+            let toml = format!("[loop_closing]\nmax_correction_deg = {bad}\n");
+            let err = Config::from_toml_str(&toml, "l.toml")
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains("loop_closing.max_correction_deg")
+                    && err.contains(bad.trim_end_matches(".0")),
+                "{err}"
+            );
+        }
+    }
+
+    #[test]
     fn events_geometry_is_checked() {
         assert_eq!(Config::default().fusion.events_geometry, "auto");
         let frame =
