@@ -406,16 +406,16 @@ config_section! {
         keyframe_ratio: f64 = 0.9,
         /// New keyframe also whenever fewer points than this are tracked.
         keyframe_min_tracked: u32 = 50,
-        /// `keyframe_min_tracked` of mode `events` (`[fusion] mode = "events"`), which
-        /// replaces it there; the same 50 by default. An event image pair matches 3–4× fewer
-        /// points than a frame pair, so a keyframe whose own count was set by a weak frame can
-        /// hold off new ones on fast translations (up to 19 frames, about 1 s, on the
-        /// quadrotor trajectory). 150 about doubles the keyframes of mode `events`: with
-        /// `--sync` it lowered the error on all 9 demo seeds (mean 2.60 → 1.86 % of the path)
-        /// and on both normal-light 8 s real trajectories, but threaded (the default back-end)
-        /// it changed nothing beyond run-to-run spread, and the quadrotor trajectory played
-        /// whole went 0.53 → 1.05 % (docs/BENCHMARKS.md, "A keyframe floor of its own for
-        /// mode `events`").
+        /// `keyframe_min_tracked` of mode `events` (`[fusion] mode = "events"`), which replaces it
+        /// there; the same 50 by default. An event image pair matches 3–4× fewer points than a
+        /// frame pair, so a keyframe whose own count was set by a weak frame can hold off new ones
+        /// on fast translations (up to 19 frames, about 1 s, on the quadrotor trajectory). 150
+        /// about doubles the keyframes of mode `events`: with `--sync`, or threaded at sensor rate
+        /// (`--realtime`), it lowered the error on every demo seed tried (sync mean 2.60 → 1.86 %
+        /// of the path) and on both normal-light 8 s real trajectories; threaded as fast as the
+        /// cores allow it changed nothing, and both trajectories played whole got worse (quadrotor
+        /// 0.53 → 1.05 %), so it is not the default (docs/BENCHMARKS.md, "A keyframe floor of its
+        /// own for mode `events`").
         events_keyframe_min_tracked: u32 = 50,
         /// The first keyframe needs at least this many triangulated stereo matches.
         init_min_points: u32 = 30,
