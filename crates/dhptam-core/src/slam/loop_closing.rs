@@ -288,7 +288,6 @@ pub fn detect_and_close(
             return Ok(None);
         }
         let mut found = None;
-        let mut segments = Segments::of(&map);
         for (c, score) in candidates {
             let (check, mut m) = verify_loop(&map, kf, c, calib, tracking, cfg)?;
             let mut agreement = match check.disagreement {
@@ -301,7 +300,7 @@ pub fn detect_and_close(
             // Within one map the tracked poses are measurements: a loop that would turn the
             // query keyframe by more than tracking can drift matched a look-alike place.
             if let Some(turn) = m.as_ref().map(|m| correction_deg(k.world_from_cam, m)) {
-                if turn > cfg.max_correction_deg && segments.same_map(kf, c) {
+                if turn > cfg.max_correction_deg && Segments::of(&map).same_map(kf, c) {
                     agreement += &format!(
                         "; it would turn the keyframe by {turn:.1} deg within one map (limit \
                          {:.1} deg)",
