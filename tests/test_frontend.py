@@ -513,6 +513,35 @@ def test_event_disparity_gives_the_frame_disparity_of_warped_event_pairs(sequenc
     assert Frontend(sequence, "events", off).event_disparity(depth_m) == (1.0, 0.0)
 
 
+def test_event_viewpoint_is_where_warped_event_images_are_seen_from(sequence) -> None:  # type: ignore[no-untyped-def]
+    """Issue 8: through the plane at infinity a warped event image is the left event camera's
+    view with the frame camera's orientation, so a point X lands at ``K π(X − c)`` for the
+    viewpoint ``c`` the front-end hands the tracker (``[fusion] event_viewpoint``)."""
+    on = _core.Config.from_toml("[fusion]\nevent_viewpoint = true\n" + WARPED_EVENTS)
+    fe = Frontend(sequence, "events", on)
+    c = np.array(fe.event_viewpoint(0.0))
+    assert np.allclose(c, fe.frame_from_event["left"].translation) and np.linalg.norm(c) > 0.01
+    kf, ke = fe.frame_rect.K, fe.event_rect.K
+    rng = np.random.default_rng(4)
+    z = rng.uniform(0.8, 4.0, 200)
+    p_frame = np.c_[rng.uniform(-0.3, 0.3, 200) * z, rng.uniform(-0.15, 0.15, 200) * z, z]
+    p_event = (fe.frame_from_event["left"].inverse().matrix() @ np.c_[p_frame, np.ones(200)].T).T[:, :3]
+    warped = fe.warp_event_pixels("left", (ke @ (p_event / p_event[:, 2:3]).T).T[:, :2], depth_m=0.0)
+
+    def project(p: np.ndarray) -> np.ndarray:
+        return (kf @ (p / p[:, 2:3]).T).T[:, :2]
+
+    from_viewpoint = np.abs(warped - project(p_frame - c)).max()
+    assert from_viewpoint < 0.05
+    # Read as the frame camera's own pixels they are pixels off.
+    assert np.abs(warped - project(p_frame)).max() > max(1.0, 20 * from_viewpoint)
+    # Zero through a finite plane, in mode frames, and by default.
+    assert fe.event_viewpoint(2.0) == (0.0, 0.0, 0.0)
+    assert Frontend(sequence, "frames", on).event_viewpoint(0.0) == (0.0, 0.0, 0.0)
+    plain = _core.Config.from_toml("[fusion]\n" + WARPED_EVENTS)
+    assert Frontend(sequence, "events", plain).event_viewpoint(0.0) == (0.0, 0.0, 0.0)
+
+
 def test_hot_pixels_are_found_and_their_events_dropped(tmp_path: Path, sequence) -> None:  # type: ignore[no-untyped-def]
     from dhptam.sim import HotPixelSource, simulate
 

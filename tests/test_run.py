@@ -312,6 +312,7 @@ class _RecordingSystem:
         sigma_scale: float = 1.0,
         disparity: Any = (1.0, 0.0),
         event_stereo: Any = None,
+        viewpoint: Any = (0.0, 0.0, 0.0),
     ) -> Any:
         self.calls.append(("track", t_ns, left, right, sigma_scale, disparity))
         return type("R", (), {"state": "ok"})()
@@ -324,6 +325,7 @@ class _RecordingSystem:
         sigma_scales: tuple[float, float] = (1.0, 1.0),
         disparities: Any = ((1.0, 0.0), (1.0, 0.0)),
         event_stereo: Any = (None, None),
+        viewpoints: Any = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
     ) -> Any:
         self.calls.append(("bridge", t_ns, primary, other, sigma_scales, disparities))
         return None if self.refuse else object()

@@ -291,6 +291,12 @@ def test_bad_keypoint_sigmas_are_refused_with_names() -> None:
     for disparity in ((0.0, 0.0), (-1.0, 0.0), (1.0, float("inf"))):
         with pytest.raises(dhptam.InputError, match=re.escape("left.disparity")):
             system.track(0, f.left, f.right, disparity=disparity)
+    # A viewpoint is (x, y, z) in metres, finite; nothing is tracked when it is not.
+    with pytest.raises(dhptam.InputError, match=re.escape("viewpoint")):
+        system.track(0, f.left, f.right, viewpoint=(0.0, 0.03))
+    with pytest.raises(dhptam.InputError, match=re.escape("left.viewpoint[1]")):
+        system.track(0, f.left, f.right, viewpoint=(0.0, float("nan"), 0.0))
+    assert system.trajectory()[0].size == 0
 
 
 def _switch_appearance(frames: list[Frame], at: int, seed: int = 7) -> list[Frame]:

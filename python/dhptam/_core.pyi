@@ -449,6 +449,7 @@ class PySystem:
         sigma_scale: float = 1.0,
         disparity: tuple[float, float] = ...,  # (1.0, 0.0)
         event_stereo: EventStereo | None = None,
+        viewpoint: tuple[float, float, float] = ...,  # (0.0, 0.0, 0.0)
     ) -> tuple[_FloatArray, str, int, bool]: ...
     # Predicted (untracked) frames across illumination floods (issue 8, accuracy).
     def predict(self, t_ns: int) -> tuple[_FloatArray, str, int, bool]: ...
@@ -472,6 +473,8 @@ class PySystem:
         other_disparity: tuple[float, float] = ...,  # (1.0, 0.0)
         event_stereo: EventStereo | None = None,
         other_event_stereo: EventStereo | None = None,
+        viewpoint: tuple[float, float, float] = ...,  # (0.0, 0.0, 0.0)
+        other_viewpoint: tuple[float, float, float] = ...,  # (0.0, 0.0, 0.0)
     ) -> tuple[int, int, int] | None: ...
     def refine_map(self, iterations: int) -> dict[str, int]: ...
     def tracking_totals(self) -> dict[str, int]: ...

@@ -322,6 +322,7 @@ class Frontend:
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
         self.event_disparity_enabled: bool = bool(fusion_cfg["event_disparity"])
         self.event_stereo_reading: str = str(fusion_cfg["event_stereo"])
+        self.event_viewpoint_enabled: bool = bool(fusion_cfg["event_viewpoint"])
         self.events_geometry: str = str(fusion_cfg["events_geometry"])
         #: Whether the event images are tracked in the rectified event cameras themselves
         #: (mode ``events`` with ``[fusion] events_geometry = "event"``, or ``"auto"`` on a
@@ -742,6 +743,26 @@ class Frontend:
         depth = float(depth_m)
         offset = scale * float(self.frame_rect.K[0, 0]) * (b_e - b_f) / depth if depth > 0.0 else 0.0
         return (scale, offset)
+
+    def event_viewpoint(self, depth_m: float = 0.0) -> tuple[float, float, float]:
+        """The viewpoint (``System.track``'s ``viewpoint``) of the event images warped into
+        the frame cameras through the plane at ``depth_m`` (0: infinity): the rectified left
+        event camera's centre in the rectified left frame camera's axes, metres. Through the
+        plane at infinity a warped event image is exactly the event cameras' view with the
+        frame cameras' orientation. Zero (the frame cameras' own view) through a plane at
+        finite depth, without ``[fusion] event_viewpoint`` or ``event_disparity``, with
+        ``event_stereo = "exact"`` (which moves the keypoints itself), in mode ``frames`` and
+        when the event cameras themselves are tracked."""
+        if (
+            not self.warps_events
+            or not self.event_viewpoint_enabled
+            or not self.event_disparity_enabled
+            or self.event_stereo_reading == "exact"
+            or float(depth_m) > 0.0
+        ):
+            return (0.0, 0.0, 0.0)
+        c = np.asarray(self.frame_from_event["left"].translation, np.float64)
+        return (float(c[0]), float(c[1]), float(c[2]))
 
     def event_stereo(self, depth_m: float = 0.0) -> _core.EventStereo | None:
         """The :class:`dhptam._core.EventStereo` that reads the stereo matches of the event

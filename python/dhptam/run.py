@@ -705,11 +705,13 @@ def _track_all(
 class ImageModel(NamedTuple):
     """How the tracker reads one image pair's features: the factor on its keypoint σ
     (``System.track``'s ``sigma_scale``), its disparity correction (``disparity``) and its
-    event-stereo reading (``event_stereo``, which replaces the disparity correction)."""
+    event-stereo reading (``event_stereo``, which replaces the disparity correction) and the
+    viewpoint its keypoints are modelled from (``viewpoint``)."""
 
     sigma_scale: float = 1.0
     disparity: tuple[float, float] = (1.0, 0.0)
     event_stereo: Any = None
+    viewpoint: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 def _image_models(frontend: Any) -> Callable[[str, float], ImageModel]:
@@ -717,7 +719,9 @@ def _image_models(frontend: Any) -> Callable[[str, float], ImageModel]:
     images get ``[tracking] dvs_sigma_scale``, and event-dominated ones (``dvs``, ``events``)
     the event cameras' disparity correction (:meth:`Frontend.event_disparity`, the default),
     or with ``[fusion] event_stereo = "exact"`` the reading of their stereo matches through
-    the event cameras' geometry (:meth:`Frontend.event_stereo`)."""
+    the event cameras' geometry (:meth:`Frontend.event_stereo`), and with ``[fusion]
+    event_viewpoint`` the event cameras' centre as their viewpoint
+    (:meth:`Frontend.event_viewpoint`)."""
     dvs_sigma_scale = float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"])
 
     def model(bias: str, warp_depth_m: float) -> ImageModel:
@@ -727,7 +731,11 @@ def _image_models(frontend: Any) -> Callable[[str, float], ImageModel]:
         reading = frontend.event_stereo(warp_depth_m)
         if reading is not None:
             return ImageModel(scale, event_stereo=reading)
-        return ImageModel(scale, frontend.event_disparity(warp_depth_m))
+        return ImageModel(
+            scale,
+            frontend.event_disparity(warp_depth_m),
+            viewpoint=frontend.event_viewpoint(warp_depth_m),
+        )
 
     return model
 
@@ -875,6 +883,7 @@ def _track_bridged(
             sigma_scale=m.sigma_scale,
             disparity=m.disparity,
             event_stereo=m.event_stereo,
+            viewpoint=m.viewpoint,
         )
 
     def bridge_at(t_ns: int, primary: Any, a: ImageModel, secondary: Any, b: ImageModel) -> Any:
@@ -885,6 +894,7 @@ def _track_bridged(
             sigma_scales=(a.sigma_scale, b.sigma_scale),
             disparities=(a.disparity, b.disparity),
             event_stereo=(a.event_stereo, b.event_stereo),
+            viewpoints=(a.viewpoint, b.viewpoint),
         )
 
     if bridge is None:

@@ -18,10 +18,11 @@ from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from . import _core
 from ._core import Config
+from .errors import InputError
 
 TrackState = Literal["initialised", "ok", "lost", "relocalised", "predicted"]
 
@@ -39,6 +40,14 @@ class FeatureSet(Protocol):
 def _sigmas(features: FeatureSet) -> NDArray[np.float32] | None:
     """The features' per-keypoint σ, or ``None`` (1 px each) when they carry none."""
     return getattr(features, "sigmas", None)
+
+
+def _viewpoint(centre: ArrayLike) -> tuple[float, float, float]:
+    """A camera centre ``(x, y, z)`` in metres as the binding takes it."""
+    c = np.asarray(centre, np.float64)
+    if c.shape != (3,):
+        raise InputError(f"viewpoint: expected (x, y, z) in metres, got shape {c.shape}", field="viewpoint")
+    return (float(c[0]), float(c[1]), float(c[2]))
 
 
 def _disparity(correction: tuple[float, float]) -> tuple[float, float]:
@@ -115,6 +124,7 @@ class System:
         sigma_scale: float = 1.0,
         disparity: tuple[float, float] = (1.0, 0.0),
         event_stereo: _core.EventStereo | None = None,
+        viewpoint: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> TrackResult:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds; ``sigma_scale``
         multiplies every keypoint σ of the frame (e.g. an event-dominated image).
@@ -125,7 +135,12 @@ class System:
         ``event_stereo`` (:meth:`dhptam.frontend.Frontend.event_stereo`) reads such a pair's
         stereo matches exactly instead: each match is triangulated with the event cameras
         and its left keypoint and right column moved to where the frame cameras see the
-        point; ``disparity`` must then stay the identity."""
+        point; ``disparity`` must then stay the identity. ``viewpoint`` is the centre, in
+        metres in the rectified left frame camera's axes, of the cameras whose view the
+        images are: zero for the frame cameras' own, and for event images warped into the
+        frame cameras through the plane at infinity the left event camera's
+        (:meth:`dhptam.frontend.Frontend.event_viewpoint`), so that tracking, new map points
+        and bundle adjustment model their keypoints from there."""
         return _track_result(
             t_ns,
             self._core.track(
@@ -138,6 +153,7 @@ class System:
                 float(sigma_scale),
                 _disparity(disparity),
                 event_stereo,
+                _viewpoint(viewpoint),
             ),
         )
 
@@ -159,6 +175,10 @@ class System:
         sigma_scales: tuple[float, float] = (1.0, 1.0),
         disparities: tuple[tuple[float, float], tuple[float, float]] = ((1.0, 0.0), (1.0, 0.0)),
         event_stereo: tuple[_core.EventStereo | None, _core.EventStereo | None] = (None, None),
+        viewpoints: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+            (0.0, 0.0, 0.0),
+            (0.0, 0.0, 0.0),
+        ),
     ) -> BridgeResult | None:
         """Inserts a bridge keyframe at the last tracked frame (taken at ``t_ns``) across a
         change of image appearance, e.g. the fusion switching between frame- and
@@ -172,8 +192,8 @@ class System:
         like ``other``, track against it and the map stays one piece. ``None`` when refused:
         the last frame is not at ``t_ns``, was lost, or too few primary features matched.
         ``sigma_scales`` multiply the keypoint σ of ``primary`` and ``other``;
-        ``disparities`` are their disparity corrections and ``event_stereo`` their
-        event-stereo readings (see :meth:`track`).
+        ``disparities`` are their disparity corrections, ``event_stereo`` their
+        event-stereo readings and ``viewpoints`` their viewpoints (see :meth:`track`).
         """
         (pl, pr), (ol, orr) = primary, other
         r = self._core.bridge(
@@ -183,6 +203,7 @@ class System:
             _sigmas(pl), _sigmas(ol), float(sigma_scales[0]), float(sigma_scales[1]),
             _disparity(disparities[0]), _disparity(disparities[1]),
             event_stereo[0], event_stereo[1],
+            _viewpoint(viewpoints[0]), _viewpoint(viewpoints[1]),
         )  # fmt: skip
         if r is None:
             return None

@@ -35,6 +35,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         sigma_scale: 1.0,
         disparity: DisparityCorrection::IDENTITY,
         event_stereo: None,
+        viewpoint: [0.0; 3],
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
@@ -43,6 +44,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         sigma_scale: 1.0,
         disparity: DisparityCorrection::IDENTITY,
         event_stereo: None,
+        viewpoint: [0.0; 3],
     };
     system.track(f.t_ns, left, right).unwrap();
 }
@@ -104,6 +106,7 @@ fn track_bench(c: &mut Criterion, fuse: bool) {
                     keypoints: lxy.clone(),
                     u_right,
                     sigmas: vec![1.0; lxy.len()],
+                    viewpoints: vec![[0.0; 3]; lxy.len()],
                     descriptors: ld,
                 };
                 let t = track_local_map(map, &state, &frame, &ctx, predicted).unwrap();

@@ -42,6 +42,7 @@ fn motion_only(c: &mut Criterion) {
                 point: world_from_cam.transform_point(&pc),
                 pixel: Vector2::new(k.fx * pc.x / pc.z + k.cx, k.fy * pc.y / pc.z + k.cy) + noise,
                 u_right: k.fx * (pc.x - k.baseline) / pc.z + k.cx + noise.x,
+                viewpoint: Vector3::zeros(),
             }
         })
         .collect();
@@ -186,6 +187,7 @@ fn stereo_window() -> (
                 point: j,
                 pixel: Vector2::new(k.fx * p.x / p.z + k.cx + e(), k.fy * p.y / p.z + k.cy + e()),
                 u_right: (s != 4).then(|| k.fx * (p.x - k.baseline) / p.z + k.cx + e()),
+                viewpoint: Vector3::zeros(),
                 sigma: 1.0,
             });
         }

@@ -333,6 +333,15 @@ config_section! {
         /// "HDR lighting on the real trajectories: what the event cameras' offset
         /// explains"), hence the default.
         event_stereo: String = "disparity".to_string(),
+        /// Event-dominated images warped into the frame cameras through the plane at
+        /// infinity are the event cameras' view: the same orientation, the event cameras'
+        /// centres (3 cm below the frame cameras' on the simulator's rig). On: their
+        /// keypoints are modelled from the left event camera's centre in tracking, new map
+        /// points and bundle adjustment (`FrameFeatures::viewpoint`; the front-end's
+        /// `Frontend.event_viewpoint`), with the disparity correction of `event_disparity`.
+        /// Off, or through a plane at finite depth (`warp_depth`, `plane_depth_m`): they are
+        /// read as the frame cameras' own.
+        event_viewpoint: bool = false,
     }
 }
 

@@ -1,5 +1,5 @@
 //! Local stereo bundle adjustment: residual Jacobians against central finite differences,
-//! recovery of a synthetic window from a perturbed and noisy start, fixed keyframes held
+//! recovery of a synthetic window (every third keyframe observing from a second viewpoint) from a perturbed and noisy start, fixed keyframes held
 //! exactly, the gauge fixed by one keyframe, centre priors, gross outliers flagged,
 //! interruption, bad input.
 
@@ -17,6 +17,9 @@ use nalgebra::{Matrix3, Vector2, Vector3, Vector6};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
+
+/// Centre of the second camera pair of the synthetic windows (see `window`), metres.
+const SECOND_VIEWPOINT: Vector3<f64> = Vector3::new(0.01, 0.03, -0.02);
 
 const K: StereoIntrinsics = StereoIntrinsics {
     fx: 450.0,
@@ -67,7 +70,14 @@ fn window(n_kf: usize, n_pt: usize, sigma: f64, seed: u64) -> Window {
     let mut observations = Vec::new();
     for (j, x) in points.iter().enumerate() {
         for (i, kf) in keyframes.iter().enumerate() {
-            let p = kf.cam_from_world.transform_point(x);
+            // Every third keyframe's images are a second camera pair's view, centred at
+            // `SECOND_VIEWPOINT` in its axes (as event images warped into frame cameras).
+            let viewpoint = if i % 3 == 2 {
+                SECOND_VIEWPOINT
+            } else {
+                Vector3::zeros()
+            };
+            let p = kf.cam_from_world.transform_point(x) - viewpoint;
             let (u, v) = (K.fx * p.x / p.z + K.cx, K.fy * p.y / p.z + K.cy);
             if p.z < 0.5 || !(0.0..640.0).contains(&u) || !(0.0..480.0).contains(&v) {
                 continue;
@@ -86,6 +96,7 @@ fn window(n_kf: usize, n_pt: usize, sigma: f64, seed: u64) -> Window {
                 point: j,
                 pixel,
                 u_right,
+                viewpoint,
                 sigma: 1.0,
             });
         }
@@ -151,7 +162,7 @@ fn residual_jacobians_match_finite_differences() {
             * w.keyframes[o.keyframe].cam_from_world;
         let x = w.points[o.point] + Vector3::new(0.03, -0.02, 0.05);
         let (r0, jp, jx, dim) =
-            stereo_ba_residual(&K, &pose, &x, &o.pixel, o.u_right, 1e-6).unwrap();
+            stereo_ba_residual(&K, &pose, &x, &o.pixel, o.u_right, &o.viewpoint, 1e-6).unwrap();
         assert_eq!(dim, if o.u_right.is_some() { 3 } else { 2 });
         if dim == 2 {
             assert_eq!(r0.z, 0.0);
@@ -159,14 +170,28 @@ fn residual_jacobians_match_finite_differences() {
         for c in 0..6 {
             let mut d = Vector6::zeros();
             d[c] = h;
-            let plus =
-                stereo_ba_residual(&K, &(Se3::exp(&d) * pose), &x, &o.pixel, o.u_right, 1e-6)
-                    .unwrap()
-                    .0;
-            let minus =
-                stereo_ba_residual(&K, &(Se3::exp(&-d) * pose), &x, &o.pixel, o.u_right, 1e-6)
-                    .unwrap()
-                    .0;
+            let plus = stereo_ba_residual(
+                &K,
+                &(Se3::exp(&d) * pose),
+                &x,
+                &o.pixel,
+                o.u_right,
+                &o.viewpoint,
+                1e-6,
+            )
+            .unwrap()
+            .0;
+            let minus = stereo_ba_residual(
+                &K,
+                &(Se3::exp(&-d) * pose),
+                &x,
+                &o.pixel,
+                o.u_right,
+                &o.viewpoint,
+                1e-6,
+            )
+            .unwrap()
+            .0;
             let fd = (plus - minus) / (2.0 * h);
             for row in 0..3 {
                 let scale = 1.0 + jp[(row, c)].abs();
@@ -181,12 +206,14 @@ fn residual_jacobians_match_finite_differences() {
         for c in 0..3 {
             let mut d = Vector3::zeros();
             d[c] = h;
-            let plus = stereo_ba_residual(&K, &pose, &(x + d), &o.pixel, o.u_right, 1e-6)
-                .unwrap()
-                .0;
-            let minus = stereo_ba_residual(&K, &pose, &(x - d), &o.pixel, o.u_right, 1e-6)
-                .unwrap()
-                .0;
+            let plus =
+                stereo_ba_residual(&K, &pose, &(x + d), &o.pixel, o.u_right, &o.viewpoint, 1e-6)
+                    .unwrap()
+                    .0;
+            let minus =
+                stereo_ba_residual(&K, &pose, &(x - d), &o.pixel, o.u_right, &o.viewpoint, 1e-6)
+                    .unwrap()
+                    .0;
             let fd = (plus - minus) / (2.0 * h);
             for row in 0..3 {
                 let scale = 1.0 + jx[(row, c)].abs();
@@ -201,6 +228,12 @@ fn residual_jacobians_match_finite_differences() {
         checked += 1;
     }
     assert!(checked > 100, "only {checked} observations checked");
+    assert!(
+        w.observations
+            .iter()
+            .any(|o| o.viewpoint == SECOND_VIEWPOINT),
+        "no observation from the second viewpoint checked"
+    );
     // Behind the camera: no residual.
     let kf = &w.keyframes[0];
     let behind = kf
@@ -213,6 +246,7 @@ fn residual_jacobians_match_finite_differences() {
         &behind,
         &Vector2::zeros(),
         None,
+        &Vector3::zeros(),
         1e-6
     )
     .is_none());

@@ -54,6 +54,7 @@ fn features<'a>(
     sigma_scale: f32,
     disparity: (f32, f32),
     event_stereo: Option<&'a PyEventStereo>,
+    viewpoint: [f32; 3],
 ) -> PyResult<FrameFeatures<'a>> {
     Ok(FrameFeatures {
         keypoints: keypoints
@@ -72,6 +73,7 @@ fn features<'a>(
             offset_px: disparity.1,
         },
         event_stereo: event_stereo.map(|e| &e.inner),
+        viewpoint,
     })
 }
 
@@ -156,10 +158,14 @@ impl PySystem {
     /// factor on all of them (e.g. an event-dominated image); `disparity`: (scale, offset px)
     /// mapping the pair's stereo disparities to the frame cameras' (event images);
     /// `event_stereo`: an `EventStereo` reading the pair's stereo matches through the event
-    /// cameras' geometry instead (warped event images; `disparity` stays the identity).
+    /// cameras' geometry instead (warped event images; `disparity` stays the identity);
+    /// `viewpoint`: (x, y, z) m, the centre of the cameras whose view the image is, in the
+    /// rectified left frame camera's axes (event images warped through the plane at
+    /// infinity: the left event camera's; zero: the frame cameras').
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
-        left_sigmas=None, sigma_scale=1.0, disparity=(1.0, 0.0), event_stereo=None
+        left_sigmas=None, sigma_scale=1.0, disparity=(1.0, 0.0), event_stereo=None,
+        viewpoint=(0.0, 0.0, 0.0)
     ))]
     #[allow(clippy::too_many_arguments)]
     fn track<'py>(
@@ -174,15 +180,17 @@ impl PySystem {
         sigma_scale: f32,
         disparity: (f32, f32),
         event_stereo: Option<PyRef<'py, PyEventStereo>>,
+        viewpoint: (f32, f32, f32),
     ) -> PyResult<TrackTuple<'py>> {
+        let c = [viewpoint.0, viewpoint.1, viewpoint.2];
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let ld = DescriptorArray::extract(left_descriptors, "left.descriptors")?;
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
         let ls = sigmas(left_sigmas, "left.sigmas")?;
         let es = event_stereo.as_deref();
-        let left = features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es)?;
-        let right = features(&rk, &rd, None, sigma_scale, disparity, es)?;
+        let left = features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es, c)?;
+        let right = features(&rk, &rd, None, sigma_scale, disparity, es, c)?;
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
@@ -203,7 +211,8 @@ impl PySystem {
     /// rendered the other way; `left_sigmas`/`other_left_sigmas` their left keypoints' σ
     /// (None: 1 each), `sigma_scale`/`other_sigma_scale` factors on them,
     /// `disparity`/`other_disparity` their disparity corrections and
-    /// `event_stereo`/`other_event_stereo` their event-stereo readings (see `track`). Returns
+    /// `event_stereo`/`other_event_stereo` their event-stereo readings and
+    /// `viewpoint`/`other_viewpoint` their viewpoints (see `track`). Returns
     /// (keyframe id, re-matched map points, points from the other image), or None when
     /// refused.
     #[pyo3(signature = (
@@ -211,7 +220,8 @@ impl PySystem {
         other_left_keypoints, other_left_descriptors, other_right_keypoints,
         other_right_descriptors, left_sigmas=None, other_left_sigmas=None, sigma_scale=1.0,
         other_sigma_scale=1.0, disparity=(1.0, 0.0), other_disparity=(1.0, 0.0),
-        event_stereo=None, other_event_stereo=None
+        event_stereo=None, other_event_stereo=None, viewpoint=(0.0, 0.0, 0.0),
+        other_viewpoint=(0.0, 0.0, 0.0)
     ))]
     #[allow(clippy::too_many_arguments)]
     fn bridge<'py>(
@@ -234,7 +244,11 @@ impl PySystem {
         other_disparity: (f32, f32),
         event_stereo: Option<PyRef<'py, PyEventStereo>>,
         other_event_stereo: Option<PyRef<'py, PyEventStereo>>,
+        viewpoint: (f32, f32, f32),
+        other_viewpoint: (f32, f32, f32),
     ) -> PyResult<Option<(u64, usize, usize)>> {
+        let c = [viewpoint.0, viewpoint.1, viewpoint.2];
+        let oc = [other_viewpoint.0, other_viewpoint.1, other_viewpoint.2];
         let lk = keypoints(left_keypoints, "left.keypoints")?;
         let rk = keypoints(right_keypoints, "right.keypoints")?;
         let olk = keypoints(other_left_keypoints, "other_left.keypoints")?;
@@ -247,8 +261,8 @@ impl PySystem {
         let ols = sigmas(other_left_sigmas, "other_left.sigmas")?;
         let (es, oes) = (event_stereo.as_deref(), other_event_stereo.as_deref());
         let primary = (
-            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es)?,
-            features(&rk, &rd, None, sigma_scale, disparity, es)?,
+            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es, c)?,
+            features(&rk, &rd, None, sigma_scale, disparity, es, c)?,
         );
         let other = (
             features(
@@ -258,8 +272,17 @@ impl PySystem {
                 other_sigma_scale,
                 other_disparity,
                 oes,
+                oc,
             )?,
-            features(&ork, &ord, None, other_sigma_scale, other_disparity, oes)?,
+            features(
+                &ork,
+                &ord,
+                None,
+                other_sigma_scale,
+                other_disparity,
+                oes,
+                oc,
+            )?,
         );
         let b = py
             .detach_guarded("slam::bridge", || {

@@ -28,6 +28,9 @@ pub struct Keyframe {
     /// Measurement noise σ per keypoint, pixels (1 for every keypoint with
     /// `[tracking] keypoint_sigma = "unit"`); weighs its observations in bundle adjustment.
     pub sigmas: Vec<f32>,
+    /// Centre of the camera pair whose view each keypoint is, in this keyframe's left-camera
+    /// axes, metres (zero: the frame cameras; see `tracking::StereoFrame::viewpoints`).
+    pub viewpoints: Vec<[f32; 3]>,
     /// Left descriptors, one row per keypoint.
     pub descriptors: OwnedDescriptors,
     /// Map point observed by each keypoint, if any.

@@ -304,6 +304,7 @@ fn adjust<'a>(
                     point: pi,
                     pixel: Vector2::new(kp[0] as f64, kp[1] as f64),
                     u_right: ur.is_finite().then_some(ur as f64),
+                    viewpoint: k.viewpoints[feature as usize].map(f64::from).into(),
                     sigma: k.sigmas[feature as usize] as f64,
                 });
             }
@@ -748,6 +749,13 @@ fn project_into(
         tri,
         descriptors.kind(),
         cfg.fuse_radius_px as f32,
+    )
+    // One viewpoint per search: the first keypoint's (a bridge keyframe's is the image
+    // tracked before the switch; its other image's keypoints are searched a few pixels off).
+    .seen_from(
+        t.viewpoints
+            .first()
+            .map_or(Vector3::zeros(), |c| c.map(f64::from).into()),
     );
     points
         .par_iter()

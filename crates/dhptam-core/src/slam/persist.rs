@@ -1,13 +1,16 @@
 //! Saving and loading a map with the tracker state: a little-endian binary file.
 //!
-//! Layout: the magic `DHPTAMAP`, a `u32` version (5), the calibration, the descriptor kind
+//! Layout: the magic `DHPTAMAP`, a `u32` version (6), the calibration, the descriptor kind
 //! and width, the tracker state, the id counters, the keyframes (per keypoint x, y, u_right
 //! and, since version 3, its σ), the map points, the loops, the trajectory (since version 4
 //! with a predicted flag per record, since version 5 with the camera centre's covariance when
 //! the tracker measured one: a flag and the upper triangle, 6 × f64) and (since version 2) the first keyframes of unjoined
-//! map segments. Version-1 files (no segment list), version-2 files (no σ: 1 px each) and
-//! version-3 files (no predicted flags: every record measured) and version-4 files (no
-//! covariances) are still read. Poses are stored as
+//! map segments; since version 6 each keypoint also stores its viewpoint (3 × f32, see
+//! `Keyframe::viewpoints`) after its σ; a map without viewpoints (all zero) is written as
+//! version 5. Version-1 files (no segment list), version-2 files
+//! (no σ: 1 px each), version-3 files (no predicted flags: every record measured),
+//! version-4 files (no covariances) and version-5 files (no viewpoints: every keypoint the
+//! frame cameras') are still read. Poses are stored as
 //! translation (3 × f64) and quaternion x-y-z-w (4 × f64) of `world_from_cam` /
 //! `kf_from_cam`. The file is written to `<path>.tmp` and
 //! renamed, so a crash never leaves a truncated map under the final name.
@@ -26,7 +29,7 @@ use crate::geometry::Se3;
 use crate::matching::{DescriptorKind, Descriptors, OwnedDescriptors};
 
 const MAGIC: &[u8; 8] = b"DHPTAMAP";
-const VERSION: u32 = 5;
+const VERSION: u32 = 6;
 
 /// The stored entries (row, column) of a symmetric 3×3 covariance: its upper triangle.
 const COV_ENTRIES: [(usize, usize); 6] = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
@@ -186,7 +189,13 @@ pub(crate) fn save(
 ) -> Result<()> {
     let mut w = Writer(Vec::new());
     w.0.extend_from_slice(MAGIC);
-    w.u32(VERSION);
+    // A map whose keypoints are all the frame cameras' own is written as version 5, which
+    // builds from before viewpoints read too.
+    let with_viewpoints = map
+        .keyframes
+        .values()
+        .any(|k| k.viewpoints.iter().any(|c| *c != [0.0; 3]));
+    w.u32(if with_viewpoints { VERSION } else { 5 });
     for v in [calib.fx, calib.fy, calib.cx, calib.cy, calib.baseline_m] {
         w.f64(v);
     }
@@ -216,11 +225,17 @@ pub(crate) fn save(
         w.i64(k.t_ns);
         w.se3(&k.world_from_cam);
         w.u64(k.keypoints.len() as u64);
-        for ((p, ur), sigma) in k.keypoints.iter().zip(&k.u_right).zip(&k.sigmas) {
+        let per_keypoint = k.keypoints.iter().zip(&k.u_right).zip(&k.sigmas);
+        for (((p, ur), sigma), c) in per_keypoint.zip(&k.viewpoints) {
             w.f32(p[0]);
             w.f32(p[1]);
             w.f32(*ur);
             w.f32(*sigma);
+            if with_viewpoints {
+                for v in c {
+                    w.f32(*v);
+                }
+            }
         }
         w.descriptors(k.descriptors.view());
         for p in &k.points {
@@ -385,6 +400,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         let m = r.len("keypoint")?;
         let (mut keypoints, mut u_right) = (Vec::with_capacity(m), Vec::with_capacity(m));
         let mut sigmas = Vec::with_capacity(m);
+        let mut viewpoints = Vec::with_capacity(m);
         for _ in 0..m {
             keypoints.push([r.f32()?, r.f32()?]);
             u_right.push(r.f32()?);
@@ -393,6 +409,15 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
                 return Err(r.corrupt(&format!("keyframe {id}: keypoint σ {sigma}")));
             }
             sigmas.push(sigma);
+            let c = if version >= 6 {
+                [r.f32()?, r.f32()?, r.f32()?]
+            } else {
+                [0.0; 3]
+            };
+            if !c.iter().all(|v| v.is_finite()) {
+                return Err(r.corrupt(&format!("keyframe {id}: keypoint viewpoint {c:?}")));
+            }
+            viewpoints.push(c);
         }
         let descriptors = r.descriptors(kind, width)?;
         if descriptors.view().len() != m {
@@ -418,6 +443,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
                 keypoints,
                 u_right,
                 sigmas,
+                viewpoints,
                 descriptors,
                 points,
                 covisible,

@@ -52,6 +52,10 @@ pub struct SyntheticOptions {
     pub period_ns: i64,
     /// Random seed.
     pub seed: u64,
+    /// Centre of the camera pair the features are measured with, in the left camera's axes
+    /// (same orientation and baseline), metres: zero for the left camera itself; e.g. an event
+    /// pair beside the frame cameras. `world_from_cam` stays the left camera's pose.
+    pub viewpoint_m: [f64; 3],
 }
 
 impl Default for SyntheticOptions {
@@ -81,6 +85,7 @@ impl Default for SyntheticOptions {
             start_half_angle_deg: 60.0,
             period_ns: 50_000_000,
             seed: 1,
+            viewpoint_m: [0.0; 3],
         }
     }
 }
@@ -147,6 +152,7 @@ pub fn generate(o: &SyntheticOptions) -> Vec<SyntheticFrame> {
         })
         .collect();
     let noise = Normal::new(0.0, o.pixel_noise.max(1e-12)).unwrap_or_else(|_| unreachable!());
+    let viewpoint = Vector3::from(o.viewpoint_m);
     let steps = o.frames.saturating_sub(1).max(1) as f64;
     (0..o.frames)
         .map(|i| {
@@ -168,7 +174,7 @@ pub fn generate(o: &SyntheticOptions) -> Vec<SyntheticFrame> {
                 } else {
                     *x
                 };
-                let p = cam_from_world.transform_point(&xw);
+                let p = cam_from_world.transform_point(&xw) - viewpoint;
                 if p.z < 0.3 {
                     continue;
                 }

@@ -53,6 +53,14 @@ pub struct FrameFeatures<'a> {
     /// to where the frame cameras would have seen the point (the left image's is used; with
     /// it, `disparity` must be the identity). `None`: keypoints as measured.
     pub event_stereo: Option<&'a EventStereo>,
+    /// Centre of the camera pair whose view the image is, in the rectified left frame
+    /// camera's axes, metres (the left image's is used): zero for the frame cameras' own
+    /// images; for event images warped into the frame cameras through the plane at infinity,
+    /// the rectified left event camera's centre (`Frontend.event_viewpoint`), so that
+    /// tracking, new points and bundle adjustment model each keypoint from where it was seen.
+    /// Mind that this holds exactly only through the plane at infinity, with the event pair's
+    /// disparities mapped to the frame baseline (`disparity`).
+    pub viewpoint: [f32; 3],
 }
 
 /// Maps a stereo match's measured disparity `d = u_left − u_right` of an image pair to the
@@ -483,6 +491,13 @@ impl System {
                 format!("scale {}, offset {} px", d.scale, d.offset_px),
             ));
         }
+        if let Some(i) = f.viewpoint.iter().position(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                format!("{side}.viewpoint[{i}]"),
+                "a finite camera centre in metres",
+                f.viewpoint[i],
+            ));
+        }
         if f.event_stereo.is_some() && d != DisparityCorrection::IDENTITY {
             return Err(Error::invalid(
                 format!("{side}.disparity"),
@@ -553,6 +568,7 @@ impl System {
         };
         Ok(StereoFrame {
             t_ns,
+            viewpoints: vec![left.viewpoint; left_xy.len()],
             keypoints: left_xy,
             u_right,
             sigmas,

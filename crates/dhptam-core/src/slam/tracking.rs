@@ -24,6 +24,12 @@ pub struct StereoFrame<'a> {
     /// Measurement noise σ of each left keypoint, pixels (finite, positive); its stereo
     /// match shares it.
     pub sigmas: Vec<f32>,
+    /// Centre of the camera pair whose view each keypoint is, in the rectified left frame
+    /// camera's axes, metres: zero for the frame cameras' own images, the event cameras'
+    /// centre for event images warped into the frame cameras through the plane at infinity
+    /// (`[fusion] event_viewpoint`). Tracking, new points and bundle adjustment model the
+    /// keypoint from there.
+    pub viewpoints: Vec<[f32; 3]>,
     /// Left descriptors.
     pub descriptors: Descriptors<'a>,
 }
@@ -159,6 +165,8 @@ pub(crate) struct Projection<'a> {
     rotation: Matrix3<f64>,
     translation: Vector3<f64>,
     centre: Vector3<f64>,
+    /// Centre of the camera pair whose view the keypoints are, in the view's axes.
+    viewpoint: Vector3<f64>,
     cos_max: f64,
     options: MatchOptions,
     radius: f32,
@@ -180,10 +188,18 @@ impl<'a> Projection<'a> {
             rotation: cam_from_world.rotation.matrix(),
             translation: cam_from_world.translation,
             centre: cam_from_world.inverse().translation,
+            viewpoint: Vector3::zeros(),
             cos_max: cfg.max_view_angle_deg.to_radians().cos(),
             options: match_options(cfg, kind),
             radius,
         }
+    }
+
+    /// The same projection for keypoints seen from `viewpoint` (the view's axes, metres; see
+    /// `StereoFrame::viewpoints`).
+    pub(crate) fn seen_from(mut self, viewpoint: Vector3<f64>) -> Self {
+        self.viewpoint = viewpoint;
+        self
     }
 
     /// The keypoint (index, descriptor distance) that point `p` matches in the view
@@ -201,7 +217,7 @@ impl<'a> Projection<'a> {
         grid: &Grid,
     ) -> Option<(usize, f32)> {
         let (calib, radius) = (self.calib, self.radius);
-        let pc = self.rotation * p.position + self.translation;
+        let pc = self.rotation * p.position + self.translation - self.viewpoint;
         if pc.z < self.tri.min_depth_m || pc.z > self.tri.max_depth_m {
             return None;
         }
@@ -248,6 +264,13 @@ pub fn search_projected(
         tri,
         frame.descriptors.kind(),
         radius,
+    )
+    // A tracked frame is one image: its keypoints share one viewpoint.
+    .seen_from(
+        frame
+            .viewpoints
+            .first()
+            .map_or(Vector3::zeros(), |c| c.map(f64::from).into()),
     );
     let found: Vec<Option<(usize, u64, f32)>> = points
         .par_iter()
@@ -330,16 +353,19 @@ fn observations(
         let kp = frame.keypoints[i];
         let pixel = Vector2::new(kp[0] as f64, kp[1] as f64);
         let ur = frame.u_right[i];
+        let viewpoint = frame.viewpoints[i].map(f64::from).into();
         obs.push(if ur.is_finite() {
             PoseObservation::Stereo {
                 point: p.position,
                 pixel,
                 u_right: ur as f64,
+                viewpoint,
             }
         } else {
             PoseObservation::Mono {
                 point: p.position,
                 pixel,
+                viewpoint,
             }
         });
         sigmas.push(frame.sigmas[i] as f64);
@@ -426,6 +452,7 @@ pub fn insert_keyframe(
             keypoints: frame.keypoints.clone(),
             u_right: frame.u_right.clone(),
             sigmas: frame.sigmas.clone(),
+            viewpoints: frame.viewpoints.clone(),
             descriptors: frame.descriptors.to_owned(),
             points: vec![None; n],
             covisible: BTreeMap::new(),
@@ -448,7 +475,9 @@ pub fn insert_keyframe(
         let Ok(t) = triangulate_rectified(&pinhole, calib.baseline_m, &uv, ur as f64, tri) else {
             continue;
         };
-        let position = world_from_cam.transform_point(&t.point_world);
+        // The pair measured the point from its viewpoint, with the keyframe's orientation.
+        let viewpoint: Vector3<f64> = frame.viewpoints[i].map(f64::from).into();
+        let position = world_from_cam.transform_point(&(t.point_world + viewpoint));
         let pid = map.next_point;
         map.next_point += 1;
         let normal = (position - centre)
@@ -929,11 +958,14 @@ pub fn bridge_keyframe(
     u_right.extend_from_slice(&other.u_right);
     let mut sigmas = primary.sigmas.clone();
     sigmas.extend_from_slice(&other.sigmas);
+    let mut viewpoints = primary.viewpoints.clone();
+    viewpoints.extend_from_slice(&other.viewpoints);
     let both = StereoFrame {
         t_ns: primary.t_ns,
         keypoints,
         u_right,
         sigmas,
+        viewpoints,
         descriptors: descriptors.view(),
     };
     let mut matches = tracked.matches;

@@ -12,6 +12,11 @@
 //!
 //! Points at depth Z ≤ `min_depth` contribute nothing at that estimate.
 //!
+//! An observation may come from a camera whose centre sits at `viewpoint` in the left
+//! camera's axes with the left camera's orientation (an event image warped into the frame
+//! camera through the plane at infinity is that camera's view): it sees P − viewpoint, and
+//! the rotation part of its Jacobian is −[P]× of the point before the shift.
+//!
 //! Each observation may carry its own measurement noise σ (pixels, the same on every row of
 //! a stereo triple): [`refine_pose_weighted`] whitens residual and Jacobian rows by 1/σ, so
 //! the cost is ½ Σ ρ(‖r‖²/σ²) and the loss scale and outlier bound, stated for σ = 1 px,
@@ -48,6 +53,9 @@ pub enum PoseObservation {
         point: Vector3<f64>,
         /// Measured (u, v).
         pixel: Vector2<f64>,
+        /// Centre of the camera that measured it, in the left camera's axes (zero: the left
+        /// camera itself).
+        viewpoint: Vector3<f64>,
     },
     /// A rectified stereo match: left pixel and right column.
     Stereo {
@@ -57,6 +65,9 @@ pub enum PoseObservation {
         pixel: Vector2<f64>,
         /// Measured u_right.
         u_right: f64,
+        /// Centre of the stereo pair that measured it, in the left camera's axes (zero: the
+        /// pair itself); the measuring pair has the same baseline and orientation.
+        viewpoint: Vector3<f64>,
     },
 }
 
@@ -125,16 +136,21 @@ pub fn pose_residual(
 /// The pose as (R, t): a matrix product per point instead of a quaternion rotation.
 type RigidMatrix = (nalgebra::Matrix3<f64>, Vector3<f64>);
 
-/// The observation's point, measured pixel and optional right column.
+/// The observation's point, measured pixel, optional right column and viewpoint.
 #[inline]
-fn parts(obs: &PoseObservation) -> (&Vector3<f64>, &Vector2<f64>, Option<f64>) {
+fn parts(obs: &PoseObservation) -> (&Vector3<f64>, &Vector2<f64>, Option<f64>, &Vector3<f64>) {
     match obs {
-        PoseObservation::Mono { point, pixel } => (point, pixel, None),
+        PoseObservation::Mono {
+            point,
+            pixel,
+            viewpoint,
+        } => (point, pixel, None, viewpoint),
         PoseObservation::Stereo {
             point,
             pixel,
             u_right,
-        } => (point, pixel, Some(*u_right)),
+            viewpoint,
+        } => (point, pixel, Some(*u_right), viewpoint),
     }
 }
 
@@ -146,8 +162,8 @@ fn residual_value(
     obs: &PoseObservation,
     min_depth: f64,
 ) -> Option<Vector3<f64>> {
-    let (point, pixel, u_right) = parts(obs);
-    let p = rotation * point + translation;
+    let (point, pixel, u_right, viewpoint) = parts(obs);
+    let p = rotation * point + translation - viewpoint;
     // NaN depths fail this test too.
     if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
@@ -160,8 +176,9 @@ fn residual_value(
     ))
 }
 
-/// The residual with its Jacobian ∂r/∂[ρ, φ] = ∂π/∂P · [I | −[P]×], written out entry by
-/// entry (the product has many structural zeros).
+/// The residual with its Jacobian ∂r/∂[ρ, φ] = ∂π/∂P · [I | −[Q]×], written out entry by
+/// entry (the product has many structural zeros), where P = Q − viewpoint is the point the
+/// measuring camera sees and Q the point in the left camera.
 #[inline]
 fn residual(
     k: &StereoIntrinsics,
@@ -169,37 +186,45 @@ fn residual(
     obs: &PoseObservation,
     min_depth: f64,
 ) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
-    let (point, pixel, u_right) = parts(obs);
-    let p = rotation * point + translation;
+    let (point, pixel, u_right, viewpoint) = parts(obs);
+    let q = rotation * point + translation;
+    let p = q - viewpoint;
     if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     let (x, y) = (p.x, p.y);
     let iz = 1.0 / p.z;
     let (xz, yz) = (x * iz, y * iz);
+    // Q / z; exactly (x/z, y/z, 1) without a viewpoint, so that case computes what it did
+    // before viewpoints existed, to the bit.
+    let (qxz, qyz, qzz) = if *viewpoint == Vector3::zeros() {
+        (xz, yz, 1.0)
+    } else {
+        (q.x * iz, q.y * iz, q.z * iz)
+    };
     let (fxz, fyz) = (k.fx * iz, k.fy * iz);
     let mut j = SMatrix::<f64, 3, 6>::zeros();
     // u = fx x/z + cx
     j[(0, 0)] = fxz;
     j[(0, 2)] = -fxz * xz;
-    j[(0, 3)] = -k.fx * xz * yz;
-    j[(0, 4)] = k.fx * (1.0 + xz * xz);
-    j[(0, 5)] = -k.fx * yz;
+    j[(0, 3)] = -k.fx * xz * qyz;
+    j[(0, 4)] = k.fx * (qzz + xz * qxz);
+    j[(0, 5)] = -k.fx * qyz;
     // v = fy y/z + cy
     j[(1, 1)] = fyz;
     j[(1, 2)] = -fyz * yz;
-    j[(1, 3)] = -k.fy * (1.0 + yz * yz);
-    j[(1, 4)] = k.fy * xz * yz;
-    j[(1, 5)] = k.fy * xz;
+    j[(1, 3)] = -k.fy * (qzz + yz * qyz);
+    j[(1, 4)] = k.fy * qxz * yz;
+    j[(1, 5)] = k.fy * qxz;
     let mut r = Vector3::new(k.fx * xz + k.cx - pixel.x, k.fy * yz + k.cy - pixel.y, 0.0);
     let dim = if let Some(ur) = u_right {
         // u_r = fx (x − b)/z + cx
         let xbz = (x - k.baseline) * iz;
         j[(2, 0)] = fxz;
         j[(2, 2)] = -fxz * xbz;
-        j[(2, 3)] = -k.fx * xbz * yz;
-        j[(2, 4)] = k.fx * (1.0 + xbz * xz);
-        j[(2, 5)] = -k.fx * yz;
+        j[(2, 3)] = -k.fx * xbz * qyz;
+        j[(2, 4)] = k.fx * (qzz + xbz * qxz);
+        j[(2, 5)] = -k.fx * qyz;
         r.z = k.fx * xbz + k.cx - ur;
         3
     } else {

@@ -86,6 +86,11 @@ pub struct BaObservation {
     pub pixel: Vector2<f64>,
     /// Measured right-image column of a stereo match; `None` for a monocular observation.
     pub u_right: Option<f64>,
+    /// Centre of the camera pair that measured it, in the keyframe's left-camera axes, with
+    /// the keyframe's orientation and baseline (zero: the keyframe's cameras themselves; an
+    /// event image warped into the frame cameras through the plane at infinity is the event
+    /// cameras' view): the observation sees the camera point minus this.
+    pub viewpoint: Vector3<f64>,
     /// Measurement noise of the keypoint, pixels (finite, positive; 1 for a keypoint located
     /// to the pixel, e.g. `scale^octave` for one detected on an image pyramid).
     pub sigma: f64,
@@ -142,10 +147,11 @@ pub fn stereo_ba_residual(
     point: &Vector3<f64>,
     pixel: &Vector2<f64>,
     u_right: Option<f64>,
+    viewpoint: &Vector3<f64>,
     min_depth: f64,
 ) -> Option<(Vector3<f64>, M36, Matrix3<f64>, usize)> {
     let pose = PoseState::new(*cam_from_world);
-    residual_jacobians(k, &pose, point, pixel, u_right, min_depth)
+    residual_jacobians(k, &pose, point, pixel, u_right, viewpoint, min_depth)
         .map(|(r, jp, jx)| (r, jp, jx, if u_right.is_some() { 3 } else { 2 }))
 }
 
@@ -177,9 +183,10 @@ fn residual_only(
     x: &Vector3<f64>,
     pixel: &Vector2<f64>,
     u_right: Option<f64>,
+    viewpoint: &Vector3<f64>,
     min_depth: f64,
 ) -> Option<Vector3<f64>> {
-    let p = pose.camera_point(x);
+    let p = pose.camera_point(x) - viewpoint;
     // NaN depths fail this test too.
     if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
@@ -199,9 +206,12 @@ fn residual_jacobians(
     x: &Vector3<f64>,
     pixel: &Vector2<f64>,
     u_right: Option<f64>,
+    viewpoint: &Vector3<f64>,
     min_depth: f64,
 ) -> Option<(Vector3<f64>, M36, Matrix3<f64>)> {
-    let p = pose.camera_point(x);
+    // The point in the keyframe's camera (q) and as the measuring camera sees it (p).
+    let q = pose.camera_point(x);
+    let p = q - viewpoint;
     if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
@@ -225,7 +235,7 @@ fn residual_jacobians(
     let mut jp = M36::zeros();
     jp.fixed_view_mut::<3, 3>(0, 0).copy_from(&proj);
     jp.fixed_view_mut::<3, 3>(0, 3)
-        .copy_from(&(-(proj * hat(&p))));
+        .copy_from(&(-(proj * hat(&q))));
     Some((r, jp, proj * pose.rotation))
 }
 
@@ -236,6 +246,7 @@ struct Obs {
     free: Option<usize>,
     pixel: Vector2<f64>,
     u_right: Option<f64>,
+    viewpoint: Vector3<f64>,
     /// 1/σ.
     weight: f64,
 }
@@ -280,6 +291,7 @@ impl StereoBa<'_> {
                             &points[j],
                             &o.pixel,
                             o.u_right,
+                            &o.viewpoint,
                             min_depth,
                         )
                         .map(|r| (r, o.weight))
@@ -329,6 +341,7 @@ impl LeastSquares for StereoBa<'_> {
                         x,
                         &o.pixel,
                         o.u_right,
+                        &o.viewpoint,
                         min_depth,
                     ) else {
                         jp[local] = M36::zeros();
@@ -467,6 +480,10 @@ fn check_inputs(
             &format!("observations[{s}] (u, v, u_right)"),
             &[o.pixel.x, o.pixel.y, ur],
         )?;
+        ensure_finite(
+            &format!("observations[{s}].viewpoint"),
+            o.viewpoint.as_slice(),
+        )?;
         if !(o.sigma.is_finite() && o.sigma > 0.0) {
             return Err(Error::invalid(
                 format!("observations[{s}].sigma"),
@@ -531,6 +548,7 @@ pub fn solve_stereo_ba(
             free: None,
             pixel: Vector2::zeros(),
             u_right: None,
+            viewpoint: Vector3::zeros(),
             weight: 1.0,
         };
         n_obs
@@ -544,6 +562,7 @@ pub fn solve_stereo_ba(
             free: free_index[o.keyframe],
             pixel: o.pixel,
             u_right: o.u_right,
+            viewpoint: o.viewpoint,
             weight: 1.0 / o.sigma,
         };
         original[at] = s;
@@ -602,6 +621,7 @@ pub fn solve_stereo_ba(
                 &problem.points[j],
                 &o.pixel,
                 o.u_right,
+                &o.viewpoint,
                 options.min_depth,
             );
             let w2 = o.weight * o.weight;

@@ -24,6 +24,7 @@ pub fn view_features<'a>(
         sigma_scale: 1.0,
         disparity,
         event_stereo,
+        viewpoint: [0.0; 3],
     }
 }
 
