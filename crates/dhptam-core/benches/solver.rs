@@ -42,7 +42,6 @@ fn motion_only(c: &mut Criterion) {
                 point: world_from_cam.transform_point(&pc),
                 pixel: Vector2::new(k.fx * pc.x / pc.z + k.cx, k.fy * pc.y / pc.z + k.cy) + noise,
                 u_right: k.fx * (pc.x - k.baseline) / pc.z + k.cx + noise.x,
-                viewpoint: Vector3::zeros(),
             }
         })
         .collect();

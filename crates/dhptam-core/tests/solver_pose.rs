@@ -5,10 +5,10 @@
 //! with σ, bad σ are refused.
 
 use dhptam_core::geometry::Se3;
-use dhptam_core::solver::pose::pose_residual;
+use dhptam_core::solver::pose::{pose_residual, pose_residual_seen_from};
 use dhptam_core::solver::{
-    refine_pose, refine_pose_weighted, LmOptions, Loss, PoseObservation, PoseOptions,
-    StereoIntrinsics,
+    refine_pose, refine_pose_seen_from, refine_pose_weighted, LmOptions, Loss, PoseObservation,
+    PoseOptions, StereoIntrinsics,
 };
 use nalgebra::{Vector2, Vector3, Vector6};
 use rand::{Rng, SeedableRng};
@@ -48,17 +48,12 @@ fn scene_seen_from(
             let pc = pc - viewpoint;
             let pixel = Vector2::new(K.fx * pc.x / pc.z + K.cx, K.fy * pc.y / pc.z + K.cy);
             if i % 4 == 3 {
-                PoseObservation::Mono {
-                    point,
-                    pixel,
-                    viewpoint,
-                }
+                PoseObservation::Mono { point, pixel }
             } else {
                 PoseObservation::Stereo {
                     point,
                     pixel,
                     u_right: K.fx * (pc.x - K.baseline) / pc.z + K.cx,
-                    viewpoint,
                 }
             }
         })
@@ -98,16 +93,19 @@ fn residual_jacobians_match_finite_differences() {
 #[test]
 fn residual_jacobians_match_finite_differences_with_a_viewpoint() {
     let pose = truth();
-    let obs = scene_seen_from(40, 7, &pose, Vector3::new(0.01, -0.03, 0.02));
+    let c = Vector3::new(0.01, -0.03, 0.02);
+    let obs = scene_seen_from(40, 7, &pose, c);
     let start = Se3::exp(&Vector6::new(0.02, 0.01, -0.03, 0.01, 0.02, -0.01)) * pose;
     let h = 1e-6;
     for o in &obs {
-        let (_, j, dim) = pose_residual(&K, &start, o, 1e-6).unwrap();
+        let (_, j, dim) = pose_residual_seen_from(&K, &start, o, &c, 1e-6).unwrap();
         for k in 0..6 {
             let mut d = Vector6::zeros();
             d[k] = h;
-            let (rp, _, _) = pose_residual(&K, &(Se3::exp(&d) * start), o, 1e-6).unwrap();
-            let (rm, _, _) = pose_residual(&K, &(Se3::exp(&-d) * start), o, 1e-6).unwrap();
+            let plus = Se3::exp(&d) * start;
+            let minus = Se3::exp(&-d) * start;
+            let (rp, _, _) = pose_residual_seen_from(&K, &plus, o, &c, 1e-6).unwrap();
+            let (rm, _, _) = pose_residual_seen_from(&K, &minus, o, &c, 1e-6).unwrap();
             let fd = (rp - rm) / (2.0 * h);
             for row in 0..dim {
                 assert!(
@@ -121,14 +119,14 @@ fn residual_jacobians_match_finite_differences_with_a_viewpoint() {
     }
 }
 
-/// Observations from a camera 3 cm below the tracked one: modelled with their viewpoint the
-/// true pose comes back; read as the tracked camera's own, the pose is off by about the
-/// offset.
+/// Observations from a camera 3 cm below the tracked one: with their viewpoint the true pose
+/// comes back; read as the tracked camera's own, the centre is off by about the offset. Zero
+/// viewpoints give exactly the plain refinement; a wrong count or a NaN is refused.
 #[test]
 fn observations_from_another_viewpoint_recover_the_true_pose() {
     let pose = truth();
-    let viewpoint = Vector3::new(0.0, 0.03, 0.0);
-    let obs = scene_seen_from(200, 8, &pose, viewpoint);
+    let c = Vector3::new(0.0, 0.03, 0.0);
+    let obs = scene_seen_from(200, 8, &pose, c);
     let options = PoseOptions {
         loss: Loss::Trivial,
         lm: LmOptions {
@@ -138,37 +136,26 @@ fn observations_from_another_viewpoint_recover_the_true_pose() {
         ..Default::default()
     };
     let start = Se3::exp(&Vector6::new(0.05, -0.05, 0.05, 0.02, -0.02, 0.01)) * pose;
-    let result = refine_pose(start, &K, &obs, &options).unwrap();
-    let err = (result.cam_from_world * pose.inverse()).log().norm();
+    let sigmas = vec![1.0; obs.len()];
+    let seen = refine_pose_seen_from(start, &K, &obs, &sigmas, &vec![c; obs.len()], &options);
+    let err = (seen.unwrap().cam_from_world * pose.inverse()).log().norm();
     assert!(err < 1e-7, "pose error {err}");
-    let ignored: Vec<PoseObservation> = obs
-        .iter()
-        .map(|o| match *o {
-            PoseObservation::Mono { point, pixel, .. } => PoseObservation::Mono {
-                point,
-                pixel,
-                viewpoint: Vector3::zeros(),
-            },
-            PoseObservation::Stereo {
-                point,
-                pixel,
-                u_right,
-                ..
-            } => PoseObservation::Stereo {
-                point,
-                pixel,
-                u_right,
-                viewpoint: Vector3::zeros(),
-            },
-        })
-        .collect();
-    let wrong = refine_pose(start, &K, &ignored, &options).unwrap();
+    let zeros = vec![Vector3::zeros(); obs.len()];
+    let plain = refine_pose_weighted(start, &K, &obs, &sigmas, &options).unwrap();
+    let as_own = refine_pose_seen_from(start, &K, &obs, &sigmas, &zeros, &options).unwrap();
+    assert_eq!(plain.cam_from_world, as_own.cam_from_world);
     let centre_err =
-        (wrong.cam_from_world.inverse().translation - pose.inverse().translation).norm();
+        (plain.cam_from_world.inverse().translation - pose.inverse().translation).norm();
     assert!(
         (0.02..0.04).contains(&centre_err),
         "the unmodelled offset moves the centre by {centre_err} m"
     );
+    let short = refine_pose_seen_from(start, &K, &obs, &sigmas, &zeros[1..], &options);
+    assert!(short.unwrap_err().to_string().contains("viewpoints"));
+    let mut bad = zeros.clone();
+    bad[3].y = f64::NAN;
+    let nan = refine_pose_seen_from(start, &K, &obs, &sigmas, &bad, &options);
+    assert!(nan.unwrap_err().to_string().contains("viewpoints[3]"));
 }
 
 #[test]

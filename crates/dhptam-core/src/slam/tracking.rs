@@ -11,7 +11,7 @@ use super::{StereoCalibration, TrackState};
 use crate::config::{TrackingConfig, TriangulationConfig};
 use crate::geometry::{triangulate_rectified, Se3};
 use crate::matching::{best_two, DescriptorKind, Descriptors, MatchOptions, OwnedDescriptors};
-use crate::solver::{refine_pose_weighted, LmOptions, Loss, PoseObservation, PoseOptions};
+use crate::solver::{refine_pose_seen_from, LmOptions, Loss, PoseObservation, PoseOptions};
 
 /// A frame's left features with their stereo matches.
 pub struct StereoFrame<'a> {
@@ -336,15 +336,19 @@ pub struct Tracked {
     pub covariance: Option<nalgebra::Matrix6<f64>>,
 }
 
-/// Observations for refinement from keypoint → point matches, with their σ and keypoint
-/// indices.
-fn observations(
-    map: &Map,
-    frame: &StereoFrame,
-    matches: &[Option<u64>],
-) -> (Vec<PoseObservation>, Vec<f64>, Vec<usize>) {
+/// Pose observations with their σ, viewpoints and keypoint indices.
+type Observations = (
+    Vec<PoseObservation>,
+    Vec<f64>,
+    Vec<Vector3<f64>>,
+    Vec<usize>,
+);
+
+/// Observations for refinement from keypoint → point matches.
+fn observations(map: &Map, frame: &StereoFrame, matches: &[Option<u64>]) -> Observations {
     let mut obs = Vec::new();
     let mut sigmas = Vec::new();
+    let mut viewpoints = Vec::new();
     let mut which = Vec::new();
     for (i, m) in matches.iter().enumerate() {
         let Some(p) = m.and_then(|id| map.points.get(&id)) else {
@@ -353,25 +357,23 @@ fn observations(
         let kp = frame.keypoints[i];
         let pixel = Vector2::new(kp[0] as f64, kp[1] as f64);
         let ur = frame.u_right[i];
-        let viewpoint = frame.viewpoints[i].map(f64::from).into();
         obs.push(if ur.is_finite() {
             PoseObservation::Stereo {
                 point: p.position,
                 pixel,
                 u_right: ur as f64,
-                viewpoint,
             }
         } else {
             PoseObservation::Mono {
                 point: p.position,
                 pixel,
-                viewpoint,
             }
         });
         sigmas.push(frame.sigmas[i] as f64);
+        viewpoints.push(frame.viewpoints[i].map(f64::from).into());
         which.push(i);
     }
-    (obs, sigmas, which)
+    (obs, sigmas, viewpoints, which)
 }
 
 /// Options of the motion-only refinement.
@@ -400,11 +402,11 @@ pub fn refine_matches(
     let mut pose = predicted;
     let mut covariance = None;
     for _ in 0..2 {
-        let (obs, sigmas, which) = observations(map, frame, &matches);
+        let (obs, sigmas, viewpoints, which) = observations(map, frame, &matches);
         if obs.len() < 6 {
             return None;
         }
-        let r = refine_pose_weighted(pose, &k, &obs, &sigmas, options);
+        let r = refine_pose_seen_from(pose, &k, &obs, &sigmas, &viewpoints, options);
         let r = match r {
             Ok(r) => r,
             Err(e) => {

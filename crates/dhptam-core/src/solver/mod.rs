@@ -16,7 +16,8 @@ pub use linear::LinearSolver;
 pub use lm::{solve, LeastSquares, LmOptions, LmReport, Termination};
 pub use pnp::{solve_pnp_ransac, PnpRansacOptions, PnpResult};
 pub use pose::{
-    refine_pose, refine_pose_weighted, PoseObservation, PoseOptions, PoseResult, StereoIntrinsics,
+    refine_pose, refine_pose_seen_from, refine_pose_weighted, PoseObservation, PoseOptions,
+    PoseResult, StereoIntrinsics,
 };
 pub use pose_graph::{
     solve_pose_graph2, solve_pose_graph3, GraphPose, PoseGraphOptions, PoseGraphSe2, PoseGraphSe3,

@@ -466,7 +466,6 @@ pub fn solve_pnp_ransac(
             .map(|s| PoseObservation::Mono {
                 point: points_world[s],
                 pixel: pixels[s],
-                viewpoint: Vector3::zeros(),
             })
             .collect();
         let Ok(refined) = refine_pose(pose, k, &observations, &refine_options) else {

@@ -12,10 +12,12 @@
 //!
 //! Points at depth Z ≤ `min_depth` contribute nothing at that estimate.
 //!
-//! An observation may come from a camera whose centre sits at `viewpoint` in the left
-//! camera's axes with the left camera's orientation (an event image warped into the frame
-//! camera through the plane at infinity is that camera's view): it sees P − viewpoint, and
-//! the rotation part of its Jacobian is −[P]× of the point before the shift.
+//! Observations may come from a camera pair whose centre sits at a *viewpoint* c in the left
+//! camera's axes, with the left camera's orientation and baseline (an event pair's images
+//! warped into the frame cameras through the plane at infinity are that pair's view):
+//! [`refine_pose_seen_from`] takes one per observation, and the observation sees
+//! P = T X − c, whose Jacobian is ∂π/∂P · [I | −[T X]×]. The viewpoints travel beside the
+//! observations so that a solve without any runs the plain code.
 //!
 //! Each observation may carry its own measurement noise σ (pixels, the same on every row of
 //! a stereo triple): [`refine_pose_weighted`] whitens residual and Jacobian rows by 1/σ, so
@@ -53,9 +55,6 @@ pub enum PoseObservation {
         point: Vector3<f64>,
         /// Measured (u, v).
         pixel: Vector2<f64>,
-        /// Centre of the camera that measured it, in the left camera's axes (zero: the left
-        /// camera itself).
-        viewpoint: Vector3<f64>,
     },
     /// A rectified stereo match: left pixel and right column.
     Stereo {
@@ -65,9 +64,6 @@ pub enum PoseObservation {
         pixel: Vector2<f64>,
         /// Measured u_right.
         u_right: f64,
-        /// Centre of the stereo pair that measured it, in the left camera's axes (zero: the
-        /// pair itself); the measuring pair has the same baseline and orientation.
-        viewpoint: Vector3<f64>,
     },
 }
 
@@ -130,40 +126,56 @@ pub fn pose_residual(
     min_depth: f64,
 ) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
     let rt = (cam_from_world.rotation.matrix(), cam_from_world.translation);
-    residual(k, &rt, obs, min_depth)
+    residual::<false>(k, &rt, obs, &NO_VIEWPOINT, min_depth)
 }
+
+/// [`pose_residual`] of an observation made from `viewpoint` (metres, in the camera's axes).
+pub fn pose_residual_seen_from(
+    k: &StereoIntrinsics,
+    cam_from_world: &Se3,
+    obs: &PoseObservation,
+    viewpoint: &Vector3<f64>,
+    min_depth: f64,
+) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
+    let rt = (cam_from_world.rotation.matrix(), cam_from_world.translation);
+    residual::<true>(k, &rt, obs, viewpoint, min_depth)
+}
+
+/// The viewpoint of the camera itself.
+const NO_VIEWPOINT: Vector3<f64> = Vector3::new(0.0, 0.0, 0.0);
 
 /// The pose as (R, t): a matrix product per point instead of a quaternion rotation.
 type RigidMatrix = (nalgebra::Matrix3<f64>, Vector3<f64>);
 
-/// The observation's point, measured pixel, optional right column and viewpoint.
+/// The observation's point, measured pixel and optional right column.
 #[inline]
-fn parts(obs: &PoseObservation) -> (&Vector3<f64>, &Vector2<f64>, Option<f64>, &Vector3<f64>) {
+fn parts(obs: &PoseObservation) -> (&Vector3<f64>, &Vector2<f64>, Option<f64>) {
     match obs {
-        PoseObservation::Mono {
-            point,
-            pixel,
-            viewpoint,
-        } => (point, pixel, None, viewpoint),
+        PoseObservation::Mono { point, pixel } => (point, pixel, None),
         PoseObservation::Stereo {
             point,
             pixel,
             u_right,
-            viewpoint,
-        } => (point, pixel, Some(*u_right), viewpoint),
+        } => (point, pixel, Some(*u_right)),
     }
 }
 
-/// The residual alone, for cost evaluations; `None` behind `min_depth`.
+/// The residual alone, for cost evaluations; `None` behind `min_depth`. With `VIEW` the
+/// observation is made from `viewpoint`, without it `viewpoint` is not read.
 #[inline]
-fn residual_value(
+fn residual_value<const VIEW: bool>(
     k: &StereoIntrinsics,
     (rotation, translation): &RigidMatrix,
     obs: &PoseObservation,
+    viewpoint: &Vector3<f64>,
     min_depth: f64,
 ) -> Option<Vector3<f64>> {
-    let (point, pixel, u_right, viewpoint) = parts(obs);
-    let p = rotation * point + translation - viewpoint;
+    let (point, pixel, u_right) = parts(obs);
+    let p = if VIEW {
+        rotation * point + translation - viewpoint
+    } else {
+        rotation * point + translation
+    };
     // NaN depths fail this test too.
     if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
@@ -177,30 +189,38 @@ fn residual_value(
 }
 
 /// The residual with its Jacobian ∂r/∂[ρ, φ] = ∂π/∂P · [I | −[Q]×], written out entry by
-/// entry (the product has many structural zeros), where P = Q − viewpoint is the point the
-/// measuring camera sees and Q the point in the left camera.
+/// entry (the product has many structural zeros), where Q = T X is the point in the camera
+/// and P = Q − viewpoint the point the measuring camera sees (`VIEW` as for
+/// [`residual_value`]).
 #[inline]
-fn residual(
+fn residual<const VIEW: bool>(
     k: &StereoIntrinsics,
     (rotation, translation): &RigidMatrix,
     obs: &PoseObservation,
+    viewpoint: &Vector3<f64>,
     min_depth: f64,
 ) -> Option<(Vector3<f64>, SMatrix<f64, 3, 6>, usize)> {
-    let (point, pixel, u_right, viewpoint) = parts(obs);
-    let q = rotation * point + translation;
-    let p = q - viewpoint;
+    let (point, pixel, u_right) = parts(obs);
+    let p = if VIEW {
+        rotation * point + translation - viewpoint
+    } else {
+        rotation * point + translation
+    };
     if p.z.partial_cmp(&min_depth) != Some(std::cmp::Ordering::Greater) {
         return None;
     }
     let (x, y) = (p.x, p.y);
     let iz = 1.0 / p.z;
     let (xz, yz) = (x * iz, y * iz);
-    // Q / z; exactly (x/z, y/z, 1) without a viewpoint, so that case computes what it did
-    // before viewpoints existed, to the bit.
-    let (qxz, qyz, qzz) = if *viewpoint == Vector3::zeros() {
-        (xz, yz, 1.0)
+    // Q / z = P / z + viewpoint / z: (x/z, y/z, 1) without a viewpoint.
+    let (qxz, qyz, qzz) = if VIEW {
+        (
+            xz + viewpoint.x * iz,
+            yz + viewpoint.y * iz,
+            1.0 + viewpoint.z * iz,
+        )
     } else {
-        (q.x * iz, q.y * iz, q.z * iz)
+        (xz, yz, 1.0)
     };
     let (fxz, fyz) = (k.fx * iz, k.fy * iz);
     let mut j = SMatrix::<f64, 3, 6>::zeros();
@@ -238,6 +258,8 @@ struct PoseProblem<'a> {
     observations: &'a [PoseObservation],
     /// 1/σ per observation; empty: σ = 1 px for all.
     weights: &'a [f64],
+    /// Viewpoint per observation; empty: every observation the camera's own.
+    viewpoints: &'a [Vector3<f64>],
     loss: Loss,
     min_depth: f64,
     pose: Se3,
@@ -257,30 +279,47 @@ impl PoseProblem<'_> {
         w * w
     }
 
+    /// Observation `i`'s viewpoint in a solve with (`VIEW`) or without viewpoints.
+    #[inline]
+    fn viewpoint<const VIEW: bool>(&self, i: usize) -> &Vector3<f64> {
+        if VIEW {
+            &self.viewpoints[i]
+        } else {
+            &NO_VIEWPOINT
+        }
+    }
+
     fn cost_at(&self, pose: &Se3) -> f64 {
+        // One loop per case, so that a solve without viewpoints runs the plain code.
+        if self.viewpoints.is_empty() {
+            self.cost_with::<false>(pose)
+        } else {
+            self.cost_with::<true>(pose)
+        }
+    }
+
+    fn cost_with<const VIEW: bool>(&self, pose: &Se3) -> f64 {
         let rt = (pose.rotation.matrix(), pose.translation);
         let mut c = 0.0;
         for (i, o) in self.observations.iter().enumerate() {
-            if let Some(r) = residual_value(&self.k, &rt, o, self.min_depth) {
+            let viewpoint = self.viewpoint::<VIEW>(i);
+            if let Some(r) = residual_value::<VIEW>(&self.k, &rt, o, viewpoint, self.min_depth) {
                 c += self.loss.evaluate(r.norm_squared() * self.weight_sq(i))[0];
             }
         }
         0.5 * c
     }
-}
 
-impl LeastSquares for PoseProblem<'_> {
-    fn cost(&mut self) -> f64 {
-        self.cost_at(&self.pose)
-    }
-
-    fn linearize(&mut self) -> f64 {
+    fn linearize_with<const VIEW: bool>(&mut self) -> f64 {
         self.h = Matrix6::zeros();
         self.g = Vector6::zeros();
         // The rotation matrix once per linearisation, not once per observation.
         let rt = (self.pose.rotation.matrix(), self.pose.translation);
         for (i, o) in self.observations.iter().enumerate() {
-            let Some((mut r, mut j, _)) = residual(&self.k, &rt, o, self.min_depth) else {
+            let viewpoint = self.viewpoint::<VIEW>(i);
+            let Some((mut r, mut j, _)) =
+                residual::<VIEW>(&self.k, &rt, o, viewpoint, self.min_depth)
+            else {
                 continue;
             };
             // Whitening: r/σ and J/σ (the robust loss then sees ‖r‖²/σ²).
@@ -297,6 +336,20 @@ impl LeastSquares for PoseProblem<'_> {
             self.g.gemv_tr(1.0, &j, &r, 1.0);
         }
         self.g.amax()
+    }
+}
+
+impl LeastSquares for PoseProblem<'_> {
+    fn cost(&mut self) -> f64 {
+        self.cost_at(&self.pose)
+    }
+
+    fn linearize(&mut self) -> f64 {
+        if self.viewpoints.is_empty() {
+            self.linearize_with::<false>()
+        } else {
+            self.linearize_with::<true>()
+        }
     }
 
     fn compute_step(&mut self, mu: f64, lo: f64, hi: f64) -> Option<Step> {
@@ -335,7 +388,7 @@ pub fn refine_pose(
     observations: &[PoseObservation],
     options: &PoseOptions,
 ) -> Result<PoseResult> {
-    solve(cam_from_world, intrinsics, observations, &[], options)
+    solve(cam_from_world, intrinsics, observations, &[], &[], options)
 }
 
 /// [`refine_pose`] with a measurement noise `sigmas[i]` (pixels, finite and positive) per
@@ -351,7 +404,53 @@ pub fn refine_pose_weighted(
 ) -> Result<PoseResult> {
     ensure_sigmas("sigmas", sigmas, observations.len())?;
     let weights: Vec<f64> = sigmas.iter().map(|s| 1.0 / s).collect();
-    solve(cam_from_world, intrinsics, observations, &weights, options)
+    solve(
+        cam_from_world,
+        intrinsics,
+        observations,
+        &weights,
+        &[],
+        options,
+    )
+}
+
+/// [`refine_pose_weighted`] with observation `i` made from `viewpoints[i]` (metres, finite,
+/// in the camera's axes; see the module notes). Viewpoints that are all zero give exactly
+/// [`refine_pose_weighted`]'s result.
+pub fn refine_pose_seen_from(
+    cam_from_world: Se3,
+    intrinsics: &StereoIntrinsics,
+    observations: &[PoseObservation],
+    sigmas: &[f64],
+    viewpoints: &[Vector3<f64>],
+    options: &PoseOptions,
+) -> Result<PoseResult> {
+    ensure_sigmas("sigmas", sigmas, observations.len())?;
+    if viewpoints.len() != observations.len() {
+        return Err(Error::invalid(
+            "viewpoints",
+            format!("one per observation ({})", observations.len()),
+            viewpoints.len(),
+        ));
+    }
+    for (i, c) in viewpoints.iter().enumerate() {
+        crate::error::ensure_finite(&format!("viewpoints[{i}]"), c.as_slice())?;
+    }
+    let weights: Vec<f64> = sigmas.iter().map(|s| 1.0 / s).collect();
+    // Without any viewpoint the plain code runs.
+    let viewpoints = if viewpoints.iter().any(|c| *c != NO_VIEWPOINT) {
+        viewpoints
+    } else {
+        &[]
+    };
+    solve(
+        cam_from_world,
+        intrinsics,
+        observations,
+        &weights,
+        viewpoints,
+        options,
+    )
 }
 
 fn solve(
@@ -359,6 +458,7 @@ fn solve(
     intrinsics: &StereoIntrinsics,
     observations: &[PoseObservation],
     weights: &[f64],
+    viewpoints: &[Vector3<f64>],
     options: &PoseOptions,
 ) -> Result<PoseResult> {
     let k = intrinsics;
@@ -370,6 +470,7 @@ fn solve(
         k: *k,
         observations,
         weights,
+        viewpoints,
         loss: options.loss,
         min_depth: options.min_depth,
         pose: cam_from_world,
@@ -385,7 +486,11 @@ fn solve(
     // The inliers' information JᵀJ and whitened squared error, for the covariance.
     let (mut h, mut chi2, mut m) = (Matrix6::<f64>::zeros(), 0.0, 0usize);
     for (i, o) in observations.iter().enumerate() {
-        let ok = match pose_residual(k, &pose, o, options.min_depth) {
+        let seen = match viewpoints.get(i) {
+            Some(c) => pose_residual_seen_from(k, &pose, o, c, options.min_depth),
+            None => pose_residual(k, &pose, o, options.min_depth),
+        };
+        let ok = match seen {
             Some((r, j, dim))
                 if r.norm_squared() * problem.weight_sq(i) <= options.outlier_threshold_sq =>
             {
