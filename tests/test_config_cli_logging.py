@@ -115,3 +115,50 @@ def test_level_from_config(monkeypatch):
     monkeypatch.delenv(dlogs.ENV_VAR, raising=False)
     config = Config.from_toml('[log]\nlevel = "warn"\n')
     assert dlogs.resolve_level(config=config) == logging.WARNING
+
+
+@pytest.fixture
+def fresh_loggers():
+    """The dhptam loggers as a new process has them (no level, no handler), put back as they
+    were after the test."""
+    saved = [(logging.getLogger(n), logging.getLogger(n).level, list(logging.getLogger(n).handlers))
+             for n in dlogs.LOGGER_NAMES]  # fmt: skip
+    for logger, _, handlers in saved:
+        logger.setLevel(logging.NOTSET)
+        for h in handlers:
+            logger.removeHandler(h)
+    dhptam._core._reset_log_cache()
+    yield
+    for logger, level, handlers in saved:
+        logger.setLevel(level)
+        logger.handlers[:] = handlers
+    dhptam._core._reset_log_cache()
+
+
+def _levels_in(log: Path) -> set[str]:
+    return {line.split()[2] for line in log.read_text().splitlines() if len(line.split()) > 2}
+
+
+def test_run_log_takes_the_level_asked_for(sim_desk_run, tmp_path, monkeypatch, capsys, fresh_loggers):
+    run = ["run", "--sequence", str(sim_desk_run), "--features", "orb", "--max-frames", "6", "-q", "--sync"]
+    # By default run.log holds INFO and above, and the console only what goes wrong.
+    monkeypatch.delenv(dlogs.ENV_VAR, raising=False)
+    assert main([*run, "--out", str(tmp_path / "default")]) == 0
+    assert "INFO" in _levels_in(tmp_path / "default" / "run.log")
+    assert "DEBUG" not in _levels_in(tmp_path / "default" / "run.log")
+    assert "INFO" not in capsys.readouterr().err
+    # [log] level = "debug" in the run's configuration: run.log gets the Rust core's debug lines.
+    config = tmp_path / "debug.toml"
+    config.write_text('[log]\nlevel = "debug"\n')
+    assert main([*run, "--config", str(config), "--out", str(tmp_path / "config")]) == 0
+    lines = (tmp_path / "config" / "run.log").read_text().splitlines()
+    assert any(" DEBUG dhptam_core" in line for line in lines), "no debug record from the Rust core"
+    # DHPTAM_LOG=debug does the same without a config file, and shows the level on the console.
+    monkeypatch.setenv(dlogs.ENV_VAR, "debug")
+    assert main([*run, "--out", str(tmp_path / "env")]) == 0
+    assert "DEBUG" in _levels_in(tmp_path / "env" / "run.log")
+    assert " DEBUG dhptam_core" in capsys.readouterr().err
+    # A level the loggers do not know is a usage error naming the variable.
+    monkeypatch.setenv(dlogs.ENV_VAR, "loud")
+    assert main([*run, "--out", str(tmp_path / "bad")]) == 2
+    assert "DHPTAM_LOG" in capsys.readouterr().err

@@ -8,12 +8,13 @@ drive. Exit codes: 0 on success, 2 for usage and input errors (bad arguments, fi
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from . import __version__, _core
+from . import __version__, _core, logs
 from .errors import DhptamError, InputError, InternalError
 
 EXIT_USAGE = 2
@@ -545,6 +546,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     try:
+        if os.environ.get(logs.ENV_VAR):
+            # Asked for by name: the console shows that level too (run.log gets it either way).
+            logs.configure()
         return int(args.func(args))
     except InternalError as error:
         print(f"dhptam {args.command}: {error}", file=sys.stderr)

@@ -113,11 +113,17 @@ class _Forward(logging.Handler):
 
 
 @contextmanager
-def _run_log(path: Path) -> Iterator[None]:
-    """Writes the dhptam loggers' records of level INFO and above (lower if configured) to
-    ``path`` while leaving what reaches the console exactly as configured."""
-    from .logs import LOGGER_NAMES
+def _run_log(path: Path) -> Iterator[Callable[[int], None]]:
+    """Writes the dhptam loggers' records to ``path`` while leaving what reaches the console
+    exactly as configured.
 
+    The file takes INFO and above, or lower when asked for: by ``$DHPTAM_LOG`` from the start,
+    and by the run's ``[log] level`` once the caller hands the resolved level to the function
+    this yields.
+    """
+    from .logs import LOGGER_NAMES, resolve_level
+
+    requested = resolve_level()
     handler = logging.FileHandler(path, mode="w", encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     saved: list[tuple[logging.Logger, int, bool, list[tuple[logging.Handler, int]]]] = []
@@ -133,12 +139,20 @@ def _run_log(path: Path) -> Iterator[None]:
             logger.addHandler(forward)
             forwarders.append((logger, forward))
             logger.propagate = False
-        logger.setLevel(min(effective, logging.INFO))
+        logger.setLevel(min(effective, logging.INFO, requested))
         logger.addHandler(handler)
     _core._reset_log_cache()
+
+    def set_file_level(level: int) -> None:
+        # Lower the loggers only: the console's handlers keep the levels clamped above.
+        for logger, *_ in saved:
+            logger.setLevel(min(logger.level, level))
+        _core._reset_log_cache()
+
     try:
-        yield
+        yield set_file_level
     finally:
+        handler.close()
         for logger, level, propagate, handlers in saved:
             logger.removeHandler(handler)
             logger.setLevel(level)
@@ -384,6 +398,7 @@ def run(
     from .features import from_config as features_from_config
     from .features import keypoint_budget
     from .frontend import Frontend
+    from .logs import resolve_level
     from .system import StereoCalibration, System
 
     if mode not in MODES:
@@ -401,8 +416,9 @@ def run(
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    with _run_log(out_dir / "run.log"), ExitStack() as resources:
+    with _run_log(out_dir / "run.log") as set_log_level, ExitStack() as resources:
         cfg = _resolve_config(config)
+        set_log_level(resolve_level(config=cfg))
         seq = resources.enter_context(_load_sequence(sequence, fmt, calibration))
         if mode != "frames" and not seq.events:
             raise InputError(
