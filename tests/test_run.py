@@ -313,8 +313,9 @@ class _RecordingSystem:
         disparity: Any = (1.0, 0.0),
         event_stereo: Any = None,
         viewpoint: Any = (0.0, 0.0, 0.0),
+        dvs_biased: bool = False,
     ) -> Any:
-        self.calls.append(("track", t_ns, left, right, sigma_scale, disparity))
+        self.calls.append(("track", t_ns, left, right, sigma_scale, disparity, dvs_biased))
         return type("R", (), {"state": "ok"})()
 
     def bridge(
@@ -339,15 +340,15 @@ def test_the_run_loop_bridges_entering_before_and_leaving_after_tracking() -> No
     # [tracking] dvs_sigma_scale = 1.4: the σ of every DVS-biased image is scaled, and its
     # disparities get the event cameras' correction (here a stand-in depending on the depth).
     def model(bias: str, warp_depth_m: float) -> ImageModel:
-        return ImageModel(1.4, (0.9, warp_depth_m)) if bias == "dvs" else ImageModel()
+        return ImageModel(1.4, (0.9, warp_depth_m), dvs_biased=True) if bias == "dvs" else ImageModel()
 
-    aps, dvs = ImageModel(), ImageModel(1.4, (0.9, 0.0))
+    aps, dvs = ImageModel(), ImageModel(1.4, (0.9, 0.0), dvs_biased=True)
     frame = SimpleNamespace(index=5, t_ns=500, bias="dvs", warp_depth_m=0.0)
     own, previous_own, other = ("L5", "R5"), ("L4", "R4"), ("oL", "oR")
     # No switch: plain tracking.
     s = _RecordingSystem()
     assert _track_bridged(s, frame, own, None, (4, previous_own, aps), model)[1] == "none"
-    assert s.calls == [("track", 500, "L5", "R5", 1.4, (0.9, 0.0))]
+    assert s.calls == [("track", 500, "L5", "R5", 1.4, (0.9, 0.0), True)]
     # Entering (the bridge renders frame 4): frame 4 is bridged with the features it was
     # tracked with, then frame 5 is tracked with its own; the bridge rendering's events were
     # warped through frame 4's depth.
@@ -356,7 +357,7 @@ def test_the_run_loop_bridges_entering_before_and_leaving_after_tracking() -> No
     assert _track_bridged(s, frame, own, entering, (4, previous_own, aps), model)[1] == "inserted"
     assert s.calls == [
         ("bridge", 400, previous_own, other, (1.0, 1.4), ((1.0, 0.0), (0.9, 2.0))),
-        ("track", 500, "L5", "R5", 1.4, (0.9, 0.0)),
+        ("track", 500, "L5", "R5", 1.4, (0.9, 0.0), True),
     ]
     # Leaving (the bridge renders frame 5 the old way): tracked with that, then bridged to its own.
     s = _RecordingSystem(refuse=True)
@@ -364,9 +365,28 @@ def test_the_run_loop_bridges_entering_before_and_leaving_after_tracking() -> No
     leaving = (SimpleNamespace(index=5, t_ns=500, bias="dvs", warp_depth_m=0.0), other)
     assert _track_bridged(s, frame, own, leaving, (4, previous_own, dvs), model)[1] == "refused"
     assert s.calls == [
-        ("track", 500, "oL", "oR", 1.4, (0.9, 0.0)),
+        ("track", 500, "oL", "oR", 1.4, (0.9, 0.0), True),
         ("bridge", 500, other, own, (1.4, 1.0), ((0.9, 0.0), (1.0, 0.0))),
     ]
+
+
+def test_only_the_fusions_dvs_biased_images_take_the_dvs_keyframe_floor() -> None:
+    """``[tracking] dvs_keyframe_min_tracked`` applies to the fusion's DVS-biased images alone:
+    mode ``events`` keeps its own floor, frames and APS-biased images the plain one."""
+    from types import SimpleNamespace
+
+    from dhptam.run import _image_models
+
+    frontend = SimpleNamespace(
+        config=_core.Config(),
+        event_stereo=lambda depth: None,
+        event_disparity=lambda depth: (0.9, 0.0),
+        event_viewpoint=lambda depth: (0.0, 0.0, 0.0),
+    )
+    model = _image_models(frontend)
+    assert {bias: model(bias, 0.0).dvs_biased for bias in ("aps", "dvs", "events", "frames")} == {
+        "aps": False, "dvs": True, "events": False, "frames": False,
+    }  # fmt: skip
 
 
 # -- illumination floods (issue 8, accuracy) -----------------------------------------------------

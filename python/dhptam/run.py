@@ -721,36 +721,41 @@ def _track_all(
 class ImageModel(NamedTuple):
     """How the tracker reads one image pair's features: the factor on its keypoint σ
     (``System.track``'s ``sigma_scale``), its disparity correction (``disparity``) and its
-    event-stereo reading (``event_stereo``, which replaces the disparity correction) and the
-    viewpoint its keypoints are modelled from (``viewpoint``)."""
+    event-stereo reading (``event_stereo``, which replaces the disparity correction), the
+    viewpoint its keypoints are modelled from (``viewpoint``) and whether it is the fusion's
+    DVS-biased rendering (``dvs_biased``: the keyframe floor ``[tracking]
+    dvs_keyframe_min_tracked``)."""
 
     sigma_scale: float = 1.0
     disparity: tuple[float, float] = (1.0, 0.0)
     event_stereo: Any = None
     viewpoint: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    dvs_biased: bool = False
 
 
 def _image_models(frontend: Any) -> Callable[[str, float], ImageModel]:
     """The :class:`ImageModel` of an image from its fusion bias and warp depth: DVS-biased
-    images get ``[tracking] dvs_sigma_scale``, and event-dominated ones (``dvs``, ``events``)
-    the event cameras' disparity correction (:meth:`Frontend.event_disparity`, the default),
-    or with ``[fusion] event_stereo = "exact"`` the reading of their stereo matches through
-    the event cameras' geometry (:meth:`Frontend.event_stereo`), and with ``[fusion]
-    event_viewpoint`` the event cameras' centre as their viewpoint
-    (:meth:`Frontend.event_viewpoint`)."""
+    images get ``[tracking] dvs_sigma_scale`` and are flagged ``dvs_biased``, and
+    event-dominated ones (``dvs``, ``events``) the event cameras' disparity correction
+    (:meth:`Frontend.event_disparity`, the default), or with ``[fusion] event_stereo =
+    "exact"`` the reading of their stereo matches through the event cameras' geometry
+    (:meth:`Frontend.event_stereo`), and with ``[fusion] event_viewpoint`` the event cameras'
+    centre as their viewpoint (:meth:`Frontend.event_viewpoint`)."""
     dvs_sigma_scale = float(frontend.config.to_dict()["tracking"]["dvs_sigma_scale"])
 
     def model(bias: str, warp_depth_m: float) -> ImageModel:
         scale = dvs_sigma_scale if bias == "dvs" else 1.0
         if bias not in ("dvs", "events"):
             return ImageModel(scale)
+        dvs_biased = bias == "dvs"
         reading = frontend.event_stereo(warp_depth_m)
         if reading is not None:
-            return ImageModel(scale, event_stereo=reading)
+            return ImageModel(scale, event_stereo=reading, dvs_biased=dvs_biased)
         return ImageModel(
             scale,
             frontend.event_disparity(warp_depth_m),
             viewpoint=frontend.event_viewpoint(warp_depth_m),
+            dvs_biased=dvs_biased,
         )
 
     return model
@@ -900,6 +905,7 @@ def _track_bridged(
             disparity=m.disparity,
             event_stereo=m.event_stereo,
             viewpoint=m.viewpoint,
+            dvs_biased=m.dvs_biased,
         )
 
     def bridge_at(t_ns: int, primary: Any, a: ImageModel, secondary: Any, b: ImageModel) -> Any:

@@ -125,6 +125,7 @@ class System:
         disparity: tuple[float, float] = (1.0, 0.0),
         event_stereo: _core.EventStereo | None = None,
         viewpoint: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        dvs_biased: bool = False,
     ) -> TrackResult:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds; ``sigma_scale``
         multiplies every keypoint σ of the frame (e.g. an event-dominated image).
@@ -140,7 +141,10 @@ class System:
         images are: zero for the frame cameras' own, and for event images warped into the
         frame cameras through the plane at infinity the left event camera's
         (:meth:`dhptam.frontend.Frontend.event_viewpoint`), so that tracking, new map points
-        and bundle adjustment model their keypoints from there."""
+        and bundle adjustment model their keypoints from there. ``dvs_biased`` marks the
+        fusion's DVS-biased (event-dominated) rendering: such a frame becomes a keyframe under
+        ``[tracking] dvs_keyframe_min_tracked`` tracked points instead of
+        ``keyframe_min_tracked``."""
         return _track_result(
             t_ns,
             self._core.track(
@@ -154,6 +158,7 @@ class System:
                 _disparity(disparity),
                 event_stereo,
                 _viewpoint(viewpoint),
+                bool(dvs_biased),
             ),
         )
 

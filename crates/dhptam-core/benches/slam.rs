@@ -36,6 +36,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         disparity: DisparityCorrection::IDENTITY,
         event_stereo: None,
         viewpoint: [0.0; 3],
+        dvs_biased: false,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
@@ -45,6 +46,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         disparity: DisparityCorrection::IDENTITY,
         event_stereo: None,
         viewpoint: [0.0; 3],
+        dvs_biased: false,
     };
     system.track(f.t_ns, left, right).unwrap();
 }
@@ -108,6 +110,7 @@ fn track_bench(c: &mut Criterion, fuse: bool) {
                     sigmas: vec![1.0; lxy.len()],
                     viewpoints: vec![[0.0; 3]; lxy.len()],
                     descriptors: ld,
+                    dvs_biased: false,
                 };
                 let t = track_local_map(map, &state, &frame, &ctx, predicted).unwrap();
                 assert!(t.inliers > 300);

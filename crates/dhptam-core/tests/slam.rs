@@ -57,16 +57,42 @@ fn tracks_every_frame_of_a_noisy_sequence_with_outliers() {
     assert!(kfs > 2 && kfs < frames.len(), "{kfs} keyframes");
 }
 
-#[test]
-fn mode_events_takes_its_own_keyframe_floor() {
+/// The slow turn the keyframe-floor tests run: at a floor of 150 it makes more keyframes than
+/// at 50.
+fn floor_sequence(frames: usize) -> (SyntheticOptions, Vec<SyntheticFrame>) {
     let o = SyntheticOptions {
         landmarks: 1000,
-        frames: 40,
+        frames,
         turns: 0.1,
         seed: 3,
         ..Default::default()
     };
     let frames = generate(&o);
+    (o, frames)
+}
+
+/// Tracks `frames` with every image flagged `dvs_biased` (or not).
+fn track_flagged(s: &mut System, frames: &[SyntheticFrame], dvs_biased: bool) {
+    for f in frames {
+        let (mut left, mut right) = frame_features(f);
+        left.dvs_biased = dvs_biased;
+        right.dvs_biased = dvs_biased;
+        s.track(f.t_ns, left, right).unwrap();
+    }
+}
+
+/// Two runs' keyframe counts are equal and their trajectories the same pose for pose.
+fn assert_same_run(a: &(usize, Vec<(i64, Se3)>), b: &(usize, Vec<(i64, Se3)>)) {
+    assert_eq!(a.0, b.0, "keyframes");
+    assert_eq!(a.1.len(), b.1.len());
+    for (x, y) in a.1.iter().zip(&b.1) {
+        assert_eq!(x.1.matrix(), y.1.matrix());
+    }
+}
+
+#[test]
+fn mode_events_takes_its_own_keyframe_floor() {
+    let (o, frames) = floor_sequence(40);
     let run = |mode: FusionMode, events_floor: u32| {
         let mut config = Config::default();
         config.fusion.mode = mode;
@@ -77,19 +103,70 @@ fn mode_events_takes_its_own_keyframe_floor() {
         });
         (s.keyframe_trajectory().len(), s.trajectory())
     };
-    let (fusion, fusion_traj) = run(FusionMode::Fusion, 150);
-    let (events, _) = run(FusionMode::Events, 150);
-    let (events_at_50, events_at_50_traj) = run(FusionMode::Events, 50);
-    eprintln!("keyframes: fusion {fusion}, events {events}, events with floor 50 {events_at_50}");
+    let fusion = run(FusionMode::Fusion, 150);
+    let events = run(FusionMode::Events, 150);
+    let events_at_50 = run(FusionMode::Events, 50);
+    eprintln!(
+        "keyframes: fusion {}, events {}, events with floor 50 {}",
+        fusion.0, events.0, events_at_50.0
+    );
     assert!(
-        events > fusion,
-        "events {events} keyframes, fusion {fusion}"
+        events.0 > fusion.0,
+        "events {} keyframes, fusion {}",
+        events.0,
+        fusion.0
     );
     // The floor is the only difference mode `events` makes to the back-end.
-    assert_eq!(events_at_50, fusion);
-    assert_eq!(fusion_traj.len(), events_at_50_traj.len());
-    for (x, y) in fusion_traj.iter().zip(&events_at_50_traj) {
-        assert_eq!(x.1.matrix(), y.1.matrix());
+    assert_same_run(&events_at_50, &fusion);
+}
+
+#[test]
+fn dvs_biased_frames_take_their_own_keyframe_floor() {
+    let (o, frames) = floor_sequence(40);
+    let run = |dvs_biased: bool, dvs_floor: u32| {
+        let mut config = Config::default();
+        config.tracking.dvs_keyframe_min_tracked = dvs_floor;
+        let mut s = System::new(o.calib, config, false).unwrap();
+        track_flagged(&mut s, &frames, dvs_biased);
+        (s.keyframe_trajectory().len(), s.trajectory())
+    };
+    let plain = run(false, 150);
+    let dvs = run(true, 150);
+    let dvs_at_50 = run(true, 50);
+    eprintln!(
+        "keyframes: plain {}, DVS-biased {}, DVS-biased with floor 50 {}",
+        plain.0, dvs.0, dvs_at_50.0
+    );
+    assert!(
+        dvs.0 > plain.0,
+        "DVS-biased {} keyframes, plain {}",
+        dvs.0,
+        plain.0
+    );
+    // The floor is all the flag changes: at the plain floor the run is the same.
+    assert_same_run(&dvs_at_50, &plain);
+}
+
+#[test]
+fn the_threaded_back_end_maps_each_dvs_biased_keyframe_before_the_next_frame() {
+    // A DVS-biased keyframe is adjusted before the next frame is tracked, as the synchronous
+    // back-end does: with every frame DVS-biased the threaded run gives the synchronous poses.
+    let (o, frames) = floor_sequence(30);
+    let run = |threaded: bool| {
+        let mut s = System::new(o.calib, Config::default(), threaded).unwrap();
+        track_flagged(&mut s, &frames, true);
+        let waits = s.timing().get("mapping_wait").map_or(0, |t| t.count);
+        s.shutdown();
+        (s.trajectory(), waits)
+    };
+    let (sync, sync_waits) = run(false);
+    let (threaded, threaded_waits) = run(true);
+    assert_eq!(sync_waits, 0);
+    assert!(threaded_waits > 2, "{threaded_waits} waits");
+    assert_eq!(sync.len(), threaded.len());
+    for (a, b) in sync.iter().zip(&threaded) {
+        let d = (a.1.translation - b.1.translation).norm();
+        assert!(d < 1e-9, "frame at {} ns: {d} m apart", a.0);
     }
 }
 
@@ -205,6 +282,7 @@ fn threaded_stress_and_prompt_shutdown() {
         disparity: DisparityCorrection::IDENTITY,
         event_stereo: None,
         viewpoint: [0.0; 3],
+        dvs_biased: false,
     };
     assert!(system.track(f.t_ns, left, left).is_err());
 }
@@ -331,6 +409,7 @@ fn stereo_frame(f: &SyntheticFrame) -> StereoFrame<'_> {
         keypoints: lxy,
         u_right,
         descriptors: ld,
+        dvs_biased: false,
     }
 }
 

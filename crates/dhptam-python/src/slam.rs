@@ -46,7 +46,9 @@ fn sigmas<'py>(
     }
 }
 
-/// One image's features read in place from checked arrays.
+/// One image's features read in place from checked arrays, with how the tracker reads them
+/// (the `FrameFeatures` fields past the arrays, one argument each as `track` takes them).
+#[allow(clippy::too_many_arguments)]
 fn features<'a>(
     keypoints: &'a PyReadonlyArray2<'_, f32>,
     descriptors: &'a DescriptorArray<'_>,
@@ -55,6 +57,7 @@ fn features<'a>(
     disparity: (f32, f32),
     event_stereo: Option<&'a PyEventStereo>,
     viewpoint: [f32; 3],
+    dvs_biased: bool,
 ) -> PyResult<FrameFeatures<'a>> {
     Ok(FrameFeatures {
         keypoints: keypoints
@@ -74,6 +77,7 @@ fn features<'a>(
         },
         event_stereo: event_stereo.map(|e| &e.inner),
         viewpoint,
+        dvs_biased,
     })
 }
 
@@ -161,11 +165,13 @@ impl PySystem {
     /// cameras' geometry instead (warped event images; `disparity` stays the identity);
     /// `viewpoint`: (x, y, z) m, the centre of the cameras whose view the image is, in the
     /// rectified left frame camera's axes (event images warped through the plane at
-    /// infinity: the left event camera's; zero: the frame cameras').
+    /// infinity: the left event camera's; zero: the frame cameras'); `dvs_biased`: the
+    /// images are the fusion's DVS-biased rendering (keyframe floor `[tracking]
+    /// dvs_keyframe_min_tracked`).
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
         left_sigmas=None, sigma_scale=1.0, disparity=(1.0, 0.0), event_stereo=None,
-        viewpoint=(0.0, 0.0, 0.0)
+        viewpoint=(0.0, 0.0, 0.0), dvs_biased=false
     ))]
     #[allow(clippy::too_many_arguments)]
     fn track<'py>(
@@ -181,6 +187,7 @@ impl PySystem {
         disparity: (f32, f32),
         event_stereo: Option<PyRef<'py, PyEventStereo>>,
         viewpoint: (f32, f32, f32),
+        dvs_biased: bool,
     ) -> PyResult<TrackTuple<'py>> {
         let c = [viewpoint.0, viewpoint.1, viewpoint.2];
         let lk = keypoints(left_keypoints, "left.keypoints")?;
@@ -189,8 +196,17 @@ impl PySystem {
         let rd = DescriptorArray::extract(right_descriptors, "right.descriptors")?;
         let ls = sigmas(left_sigmas, "left.sigmas")?;
         let es = event_stereo.as_deref();
-        let left = features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es, c)?;
-        let right = features(&rk, &rd, None, sigma_scale, disparity, es, c)?;
+        let left = features(
+            &lk,
+            &ld,
+            ls.as_ref(),
+            sigma_scale,
+            disparity,
+            es,
+            c,
+            dvs_biased,
+        )?;
+        let right = features(&rk, &rd, None, sigma_scale, disparity, es, c, dvs_biased)?;
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
@@ -261,8 +277,9 @@ impl PySystem {
         let ols = sigmas(other_left_sigmas, "other_left.sigmas")?;
         let (es, oes) = (event_stereo.as_deref(), other_event_stereo.as_deref());
         let primary = (
-            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es, c)?,
-            features(&rk, &rd, None, sigma_scale, disparity, es, c)?,
+            // A bridge is a keyframe whatever its count: the floor does not apply.
+            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es, c, false)?,
+            features(&rk, &rd, None, sigma_scale, disparity, es, c, false)?,
         );
         let other = (
             features(
@@ -273,6 +290,7 @@ impl PySystem {
                 other_disparity,
                 oes,
                 oc,
+                false,
             )?,
             features(
                 &ork,
@@ -282,6 +300,7 @@ impl PySystem {
                 other_disparity,
                 oes,
                 oc,
+                false,
             )?,
         );
         let b = py

@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, Condvar, Mutex, RwLock};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
@@ -61,6 +61,10 @@ pub struct FrameFeatures<'a> {
     /// Mind that this holds exactly only through the plane at infinity, with the event pair's
     /// disparities mapped to the frame baseline (`disparity`).
     pub viewpoint: [f32; 3],
+    /// Whether the image is the fusion's DVS-biased rendering (event-dominated, mode
+    /// `fusion`); a frame of such images gets the keyframe floor `[tracking]
+    /// dvs_keyframe_min_tracked` (the left image's is used).
+    pub dvs_biased: bool,
 }
 
 /// Maps a stereo match's measured disparity `d = u_left − u_right` of an image pair to the
@@ -147,6 +151,9 @@ pub(crate) struct Shared {
     pub(crate) fusion: Mutex<FusionTotals>,
     /// Keyframes removed as redundant by the mapping thread so far.
     pub(crate) culled_keyframes: AtomicU64,
+    /// Keyframes the mapping thread has finished (`u64::MAX` once it has stopped), with the
+    /// condition the tracker waits on for a DVS-biased keyframe ([`System::track`]).
+    pub(crate) mapped: (Mutex<u64>, Condvar),
 }
 
 /// Running totals of the mapping thread's fusion of duplicate points and re-finding.
@@ -159,6 +166,13 @@ pub struct FusionTotals {
 }
 
 impl Shared {
+    /// Counts `n` more keyframes as mapped (saturating) and wakes a waiting tracker.
+    fn mapped_one(&self, n: u64) {
+        let mut done = lock(&self.mapped.0);
+        *done = done.saturating_add(n);
+        self.mapped.1.notify_all();
+    }
+
     pub(crate) fn time<T>(&self, stage: &'static str, f: impl FnOnce() -> T) -> T {
         let start = Instant::now();
         let out = f();
@@ -309,6 +323,8 @@ pub struct System {
     descriptor: Option<(DescriptorKind, usize)>,
     threaded: bool,
     mapping_tx: Option<SyncSender<u64>>,
+    /// Keyframes handed to the mapping thread so far.
+    sent: u64,
     workers: Vec<JoinHandle<()>>,
     closed: bool,
     /// Median depth (m, rectified left camera) of the map points the last measured frame
@@ -374,10 +390,13 @@ fn mapping_worker(shared: Arc<Shared>, rx: Receiver<u64>, loops: SyncSender<u64>
         }
         shared.interrupt.store(false, Ordering::Release);
         shared.map_keyframe(kf, Some(&shared.interrupt));
+        shared.mapped_one(1);
         if loops.send(kf).is_err() {
             break;
         }
     }
+    // Nothing more will be mapped: a tracker waiting for it goes on.
+    shared.mapped_one(u64::MAX);
 }
 
 fn loop_worker(shared: Arc<Shared>, rx: Receiver<u64>) {
@@ -418,6 +437,7 @@ impl System {
             place: Mutex::new(PlaceDatabase::new()),
             fusion: Mutex::new(FusionTotals::default()),
             culled_keyframes: AtomicU64::new(0),
+            mapped: (Mutex::new(0), Condvar::new()),
         });
         let mut system = Self {
             shared,
@@ -426,6 +446,7 @@ impl System {
             descriptor: None,
             threaded,
             mapping_tx: None,
+            sent: 0,
             workers: Vec::new(),
             closed: false,
             tracked_depth: None,
@@ -568,6 +589,7 @@ impl System {
         };
         Ok(StereoFrame {
             t_ns,
+            dvs_biased: left.dvs_biased,
             viewpoints: vec![left.viewpoint; left_xy.len()],
             keypoints: left_xy,
             u_right,
@@ -824,6 +846,12 @@ impl System {
         }
         if let Some(kf) = outcome.keyframe {
             self.after_keyframe(kf);
+            if frame.dvs_biased {
+                // Such keyframes come at nearly every frame, and each would interrupt the
+                // adjustment of the last before the next frame tracks against it: the
+                // threaded back-end maps it first, as the synchronous one does.
+                self.wait_for_mapping();
+            }
         }
         Ok(TrackResult {
             t_ns,
@@ -951,12 +979,33 @@ impl System {
         None
     }
 
+    /// With the mapping thread: waits until it has finished every keyframe handed to it
+    /// (or stopped). Without: returns at once (mapping ran inline).
+    fn wait_for_mapping(&self) {
+        if self.mapping_tx.is_none() {
+            return;
+        }
+        let shared = &self.shared;
+        shared.time("mapping_wait", || {
+            let (done, ready) = &shared.mapped;
+            let mut mapped = lock(done);
+            while *mapped < self.sent && !shared.shutdown.load(Ordering::Acquire) {
+                mapped = ready
+                    .wait_timeout(mapped, std::time::Duration::from_millis(100))
+                    .map(|(g, _)| g)
+                    .unwrap_or_else(|e| e.into_inner().0);
+            }
+        });
+    }
+
     fn after_keyframe(&mut self, kf: u64) {
         match &self.mapping_tx {
             Some(tx) => {
                 self.shared.interrupt.store(true, Ordering::Release);
                 if tx.send(kf).is_err() {
                     log::warn!("mapping thread gone; keyframe {kf} not optimised");
+                } else {
+                    self.sent += 1;
                 }
             }
             None => {

@@ -32,6 +32,20 @@ pub struct StereoFrame<'a> {
     pub viewpoints: Vec<[f32; 3]>,
     /// Left descriptors.
     pub descriptors: Descriptors<'a>,
+    /// The images are the fusion's DVS-biased rendering: the keyframe floor is `[tracking]
+    /// dvs_keyframe_min_tracked` instead of `keyframe_min_tracked`.
+    pub dvs_biased: bool,
+}
+
+/// The least number of tracked points under which `frame` becomes a keyframe whatever its
+/// reference keyframe tracked: `[tracking] dvs_keyframe_min_tracked` for the fusion's
+/// DVS-biased images, `keyframe_min_tracked` otherwise.
+pub fn keyframe_floor(cfg: &TrackingConfig, frame: &StereoFrame) -> u32 {
+    if frame.dvs_biased {
+        cfg.dvs_keyframe_min_tracked
+    } else {
+        cfg.keyframe_min_tracked
+    }
 }
 
 /// The descriptor thresholds of the configuration for a descriptor kind.
@@ -782,7 +796,7 @@ pub fn commit_tracked(
             .reference
             .is_none_or(|r| !map.keyframes.contains_key(&r))
         || (tracked.inliers as f64) < ctx.cfg.keyframe_ratio * reference_tracked as f64
-        || tracked.inliers < ctx.cfg.keyframe_min_tracked as usize;
+        || tracked.inliers < keyframe_floor(ctx.cfg, frame) as usize;
     let mut keyframe = None;
     if need_keyframe {
         let (id, count) = insert_keyframe(
@@ -969,6 +983,7 @@ pub fn bridge_keyframe(
         sigmas,
         viewpoints,
         descriptors: descriptors.view(),
+        dvs_biased: primary.dvs_biased,
     };
     let mut matches = tracked.matches;
     matches.resize(both.keypoints.len(), None);

@@ -25,6 +25,7 @@ pub fn view_features<'a>(
         disparity,
         event_stereo,
         viewpoint: [0.0; 3],
+        dvs_biased: false,
     }
 }
 
