@@ -252,9 +252,12 @@ def test_the_shipped_r2d2_cpu_configuration_builds_the_fast_setting(monkeypatch:
     # configs/r2d2-cpu.toml, the file docs/FEATURES.md and the README point CPU users to.
     monkeypatch.setenv("DHPTAM_WEIGHTS_DIR", str(shared_path("models", "r2d2")))
     path = Path(__file__).resolve().parents[1] / "configs" / "r2d2-cpu.toml"
-    extractor = features.from_config(Config.from_file(path))
+    config = Config.from_file(path)
+    extractor = features.from_config(config)
     assert "Fast_Quad_L2Net" in repr(extractor) and extractor.device.type == "cpu"  # type: ignore[attr-defined]
     assert (extractor.precision, extractor.scales) == ("int8", (1.0,))  # type: ignore[attr-defined]
+    # R2D2 keeps the plain keyframe floor on DVS-biased frames (docs/BENCHMARKS.md).
+    assert config.to_dict()["tracking"]["dvs_keyframe_min_tracked"] == 50
 
 
 def test_the_shipped_r2d2_one_scale_configuration_builds_its_setting(monkeypatch: pytest.MonkeyPatch) -> None:
