@@ -7,7 +7,8 @@
 //! points around the keyframe), accepted only when both succeed and the relative poses they
 //! imply agree ([`verify_loop`]). An accepted loop adds
 //! an edge to a pose graph over all keyframes (odometry edges: the relative poses before the
-//! correction, between consecutive and strongly covisible keyframes), which is optimised;
+//! correction between keyframes consecutive by id, plus the edges of earlier loops; every
+//! edge with unit information), which is optimised;
 //! no odometry edge crosses the boundary of a map segment that tracking started after a loss
 //! until a loop joins the two segments, so a loop between segments moves the new segment onto
 //! the old one as a whole (issue 10);
