@@ -454,6 +454,21 @@ config_section! {
         /// starts a new map segment. Off: the place query's candidates only
         /// (docs/BENCHMARKS.md, "Relocalisation against the reference keyframe").
         relocalise_reference: bool = true,
+        /// A frame relocalised right after a tracked frame of the same map segment takes the
+        /// step from that frame as its velocity (when the step itself passes the
+        /// `max_jump_ratio` check, from the last pose at rest), instead of restarting from
+        /// rest. Over fast turns the motion model misses frame after frame, and a velocity
+        /// from rest makes the next frame miss again; but on the HDR-lit poster trajectory
+        /// played whole, R2D2 went from 0.64 % to 4.3 % with it, and to 240 % with
+        /// `segment_velocity = "measured"` (docs/BENCHMARKS.md, "The relocalised step's
+        /// velocity, measured again"), so it is off.
+        relocalised_velocity: bool = false,
+        /// The velocity a new map segment ([`reinitialise`](Self::reinitialise)) goes on
+        /// with: `"kept"`, the one the motion model placed it with; `"rest"`, none;
+        /// `"measured"`, the kept one unless it is a relocalised frame's step
+        /// ([`relocalised_velocity`](Self::relocalised_velocity)), which is dropped (so
+        /// `"kept"` and `"measured"` differ only with that setting on).
+        segment_velocity: String = "kept".to_owned(),
         /// Frames whose mean motion is the velocity of predicted (untracked) frames
         /// (`System::predict`, across illumination floods): the motion between the last
         /// measured frame and the one this many frames before it, taken to the 1/n power; 1
@@ -656,6 +671,12 @@ impl TrackingConfig {
             self.smoothing_q.is_finite() && self.smoothing_q >= 0.0,
             "a non-negative number (0: off)",
             self.smoothing_q,
+        )?;
+        check(
+            "tracking.segment_velocity",
+            ["kept", "rest", "measured"].contains(&self.segment_velocity.as_str()),
+            "\"kept\", \"rest\" or \"measured\"",
+            format!("{:?}", self.segment_velocity),
         )?;
         check(
             "tracking.keypoint_sigma",

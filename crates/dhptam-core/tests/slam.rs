@@ -1665,3 +1665,152 @@ fn features_seen_from_another_viewpoint_are_modelled_from_it() {
     assert_eq!(u32::from_le_bytes(bytes[8..12].try_into().unwrap()), 5);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn a_relocalised_frame_passes_its_step_on_as_the_velocity() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 200,
+        seed: 6,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    // Ten frames at the full rate, then every fifth: from then on each step turns the camera
+    // five times further than the motion model expects, well past the wide search window.
+    let played: Vec<&SyntheticFrame> = frames[..10]
+        .iter()
+        .chain(frames[10..].iter().step_by(5))
+        .collect();
+    let run = |velocity: bool| {
+        let mut config = Config::default();
+        config.tracking.relocalised_velocity = velocity;
+        let mut system = System::new(o.calib, config, false).unwrap();
+        let states: Vec<TrackState> = played.iter().map(|f| track(&mut system, f).state).collect();
+        let truth: Vec<Vector3<f64>> = played
+            .iter()
+            .map(|f| f.world_from_cam.translation)
+            .collect();
+        let error = ate(&positions(&system.trajectory()), &truth);
+        (system.tracking_totals(), states, error)
+    };
+    // With the step's velocity: the first frame of the faster rate is relocalised, and the
+    // motion model predicts every frame after it.
+    let (on, states, error) = run(true);
+    assert_eq!(on.relocalisations, 1, "{on:?} {states:?}");
+    assert_eq!(on.segments, 0, "{on:?}");
+    assert_eq!(states[11], TrackState::Relocalised, "{states:?}");
+    assert!(
+        states[12..].iter().all(|s| *s == TrackState::Ok),
+        "{states:?}"
+    );
+    assert!(error < 0.02, "ATE {error} m");
+    // From rest: the prediction misses every frame, and each is relocalised again.
+    let (off, states, _) = run(false);
+    assert!(off.relocalisations >= 30, "{off:?} {states:?}");
+}
+
+/// How far apart the tracked camera centres of frames `i - 1` and `i` of a run lie.
+fn tracked_step(system: &System, i: usize) -> f64 {
+    let poses = system.tracked_trajectory();
+    (poses[i].1.translation - poses[i - 1].1.translation).norm()
+}
+
+#[test]
+fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 200,
+        seed: 6,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    // A frame no other frame matches: its descriptors negated (`flip`) or reversed, in the
+    // left and right views alike.
+    let glitched = |f: &SyntheticFrame, flip: bool| {
+        let mut g = f.clone();
+        for d in [&mut g.left.descriptors, &mut g.right.descriptors] {
+            if flip {
+                d.iter_mut().for_each(|x| *x = -*x);
+            } else {
+                d.chunks_exact_mut(32).for_each(|c| c.reverse());
+            }
+        }
+        g
+    };
+    // Plays `order` (indices into `frames`), those at the positions in `glitch` each
+    // unmatchable in its own way, so each starts a new map segment; returns the system and
+    // each frame's state.
+    let run = |setting: &str, order: &[usize], glitch: std::ops::Range<usize>| {
+        let mut config = Config::default();
+        config.tracking.relocalised_velocity = true;
+        config.tracking.segment_velocity = setting.to_owned();
+        let mut system = System::new(o.calib, config, false).unwrap();
+        let states: Vec<TrackState> = order
+            .iter()
+            .enumerate()
+            .map(|(k, &i)| {
+                let f = if glitch.contains(&k) {
+                    glitched(&frames[i], k % 2 == 0)
+                } else {
+                    frames[i].clone()
+                };
+                track(&mut system, &f).state
+            })
+            .collect();
+        (system, states)
+    };
+    let true_step = |a: usize, b: usize| {
+        (frames[b].world_from_cam.translation - frames[a].world_from_cam.translation).norm()
+    };
+    // A velocity measured between tracked frames: the second of two new segments in a row
+    // is placed one step on with "kept" and "measured", at the first one's pose with "rest".
+    let full_rate: Vec<usize> = (0..60).collect();
+    let step = true_step(40, 41);
+    for (setting, moved) in [("kept", true), ("measured", true), ("rest", false)] {
+        let (system, states) = run(setting, &full_rate, 40..42);
+        assert_eq!(
+            states[40..42],
+            [TrackState::Initialised; 2],
+            "{setting}: {states:?}"
+        );
+        let d = tracked_step(&system, 41);
+        if moved {
+            assert!(
+                (d - step).abs() < 0.25 * step,
+                "{setting}: {d} m, true step {step} m"
+            );
+        } else {
+            assert!(d < 0.25 * step, "{setting}: {d} m, true step {step} m");
+        }
+    }
+    // A relocalised frame's step (ten frames at the full rate, then every fifth: the frame at
+    // position 11 is relocalised): carried into the new segments only with "kept".
+    let faster: Vec<usize> = (0..10).chain((10..200).step_by(5)).collect();
+    let step = true_step(faster[12], faster[13]);
+    for (setting, moved) in [("kept", true), ("measured", false), ("rest", false)] {
+        let (system, states) = run(setting, &faster, 12..14);
+        assert_eq!(states[11], TrackState::Relocalised, "{setting}: {states:?}");
+        assert_eq!(
+            states[12..14],
+            [TrackState::Initialised; 2],
+            "{setting}: {states:?}"
+        );
+        let d = tracked_step(&system, 13);
+        if moved {
+            assert!(
+                (d - step).abs() < 0.25 * step,
+                "{setting}: {d} m, true step {step} m"
+            );
+        } else {
+            assert!(d < 0.25 * step, "{setting}: {d} m, true step {step} m");
+        }
+    }
+    // An unknown setting is refused by name.
+    let mut config = Config::default();
+    config.tracking.segment_velocity = "constant".to_owned();
+    let err = System::new(o.calib, config, false)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("segment_velocity"), "{err}");
+}

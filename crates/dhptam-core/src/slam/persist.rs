@@ -386,6 +386,8 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         lost: r.u8()? != 0,
         // Not saved: a loaded map resumes from its last frame as a measured one.
         measured: last,
+        // Not saved either: a loaded map's velocity counts as measured.
+        velocity_relocalised: false,
     };
     let mut map = Map {
         next_keyframe: r.u64()?,

@@ -15,9 +15,10 @@ use super::loop_closing::{detect_and_close, verify};
 use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
-    bootstrap, bridge_keyframe, commit_tracked, constant_velocity_prediction, last_pose,
-    predict_only, reference_motion, reference_pose, reinitialise, retrack_after_correction,
-    stereo_match, track_local_map, Bridge, StereoFrame, TrackContext, Tracked, TrackerState,
+    bootstrap, bridge_keyframe, commit_tracked, consecutive_pose, constant_velocity_prediction,
+    last_pose, predict_only, reference_motion, reference_pose, reinitialise,
+    retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame, TrackContext,
+    Tracked, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -788,8 +789,27 @@ impl System {
                             &t.cam_from_world,
                             t.matches.iter().flatten().copied(),
                         );
+                        // The step must be plausible on its own, from the last pose at rest:
+                        // checked against the prediction, a step could grow by the check's
+                        // bound at every relocalisation of a chain.
+                        let step_from = if ctx.cfg.relocalised_velocity {
+                            consecutive_pose(&map, &self.state, reference).filter(|last| {
+                                let at_rest = last.inverse();
+                                implausible_jump(&map, &t, &at_rest, ctx.cfg.max_jump_ratio)
+                                    .is_none()
+                            })
+                        } else {
+                            None
+                        };
+                        let cam_from_world = t.cam_from_world;
                         self.state.reference = Some(reference);
-                        commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, None, true)
+                        let outcome =
+                            commit_tracked(&mut map, &mut self.state, &frame, &ctx, t, None, true);
+                        if let Some(previous) = step_from {
+                            self.state.velocity = cam_from_world * previous;
+                            self.state.velocity_relocalised = true;
+                        }
+                        outcome
                     }
                     None => {
                         let restarted = if ctx.cfg.reinitialise && previous.is_some() {

@@ -324,6 +324,9 @@ pub struct TrackerState {
     /// The last frame whose pose was measured (tracked, bootstrapped, re-initialised or
     /// bridged); `last` differs from it after frames moved on by [`predict_only`].
     pub measured: Option<FrameRecord>,
+    /// Whether `velocity` is a relocalised frame's step (`[tracking] relocalised_velocity`)
+    /// rather than the motion between two tracked frames.
+    pub velocity_relocalised: bool,
 }
 
 impl Default for TrackerState {
@@ -334,6 +337,7 @@ impl Default for TrackerState {
             reference: None,
             lost: false,
             measured: None,
+            velocity_relocalised: false,
         }
     }
 }
@@ -601,6 +605,7 @@ pub fn bootstrap(
         reference: Some(id),
         lost: false,
         measured: Some(record),
+        velocity_relocalised: false,
     };
     FrameOutcome {
         state: TrackState::Initialised,
@@ -643,6 +648,15 @@ pub fn reinitialise(
     state.measured = Some(record);
     state.reference = Some(id);
     state.lost = false;
+    let from_rest = match ctx.cfg.segment_velocity.as_str() {
+        "kept" => false,
+        "rest" => true,
+        _ => state.velocity_relocalised,
+    };
+    if from_rest {
+        state.velocity = Se3::identity();
+        state.velocity_relocalised = false;
+    }
     Some(FrameOutcome {
         state: TrackState::Initialised,
         world_from_cam,
@@ -701,6 +715,15 @@ pub fn track_local_map(
 /// The last tracked frame's `world_from_cam`, through its (possibly corrected) keyframe.
 pub fn last_pose(map: &Map, state: &TrackerState) -> Option<Se3> {
     state.last.as_ref().and_then(|r| map.frame_pose(r))
+}
+
+/// The last frame's `world_from_cam` when a frame relocalised against keyframe `kf` follows
+/// it directly in the same map segment (the tracker was not lost), so that the step between
+/// the two is a measured motion; `None` otherwise.
+pub fn consecutive_pose(map: &Map, state: &TrackerState, kf: u64) -> Option<Se3> {
+    let last = state.last.as_ref().filter(|_| !state.lost)?;
+    (map.segment_of(last.keyframe) == map.segment_of(kf)).then_some(())?;
+    map.frame_pose(last)
 }
 
 /// The last frame's `world_from_cam` ([`last_pose`]) and the constant-velocity prediction of
@@ -783,6 +806,7 @@ pub fn commit_tracked(
         (false, Some(prev)) => tracked.cam_from_world * prev,
         _ => Se3::identity(),
     };
+    state.velocity_relocalised = false;
     let reference_tracked = match state.reference.and_then(|r| map.keyframes.get_mut(&r)) {
         Some(k) if k.tracked == 0 => {
             k.tracked = tracked.inliers;
