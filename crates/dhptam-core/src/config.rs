@@ -459,9 +459,9 @@ config_section! {
         /// `max_jump_ratio` check, from the last pose at rest), instead of restarting from
         /// rest. Over fast turns the motion model misses frame after frame, and a velocity
         /// from rest makes the next frame miss again; but on the HDR-lit poster trajectory
-        /// played whole, R2D2 went from 0.64 % to 4.3 % with it, and to 240 % with
-        /// `segment_velocity = "measured"` (docs/BENCHMARKS.md, "The relocalised step's
-        /// velocity, measured again"), so it is off.
+        /// played whole, R2D2 went from 0.24 % to 4.3 % with it and `segment_velocity =
+        /// "rest"`, and to 240 % with `"measured"` (docs/BENCHMARKS.md, "The relocalised
+        /// step's velocity, measured again"), so it is off.
         relocalised_velocity: bool = false,
         /// The velocity a new map segment ([`reinitialise`](Self::reinitialise)) goes on
         /// with: `"kept"`, the one the motion model placed it with; `"rest"`, none;
