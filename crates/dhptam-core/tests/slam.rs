@@ -1759,52 +1759,50 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
             .collect();
         (system, states)
     };
-    let true_step = |a: usize, b: usize| {
-        (frames[b].world_from_cam.translation - frames[a].world_from_cam.translation).norm()
-    };
+    // Plays `order` with the frames at positions `glitch` (two) unmatchable, then checks where
+    // the second new segment lies from the first: one true step on when `moved`, else at it.
+    let check =
+        |order: &[usize], glitch: usize, cases: [(&str, bool); 3], relocalised: Option<usize>| {
+            let (a, b) = (order[glitch], order[glitch + 1]);
+            let step = (frames[b].world_from_cam.translation
+                - frames[a].world_from_cam.translation)
+                .norm();
+            for (setting, moved) in cases {
+                let (system, states) = run(setting, order, glitch..glitch + 2);
+                if let Some(k) = relocalised {
+                    assert_eq!(states[k], TrackState::Relocalised, "{setting}: {states:?}");
+                }
+                assert_eq!(
+                    states[glitch..glitch + 2],
+                    [TrackState::Initialised; 2],
+                    "{setting}: {states:?}"
+                );
+                let d = tracked_step(&system, glitch + 1);
+                let expected = if moved { step } else { 0.0 };
+                assert!(
+                    (d - expected).abs() < 0.25 * step,
+                    "{setting}: {d} m, true step {step} m"
+                );
+            }
+        };
     // A velocity measured between tracked frames: the second of two new segments in a row
     // is placed one step on with "kept" and "measured", at the first one's pose with "rest".
     let full_rate: Vec<usize> = (0..60).collect();
-    let step = true_step(40, 41);
-    for (setting, moved) in [("kept", true), ("measured", true), ("rest", false)] {
-        let (system, states) = run(setting, &full_rate, 40..42);
-        assert_eq!(
-            states[40..42],
-            [TrackState::Initialised; 2],
-            "{setting}: {states:?}"
-        );
-        let d = tracked_step(&system, 41);
-        if moved {
-            assert!(
-                (d - step).abs() < 0.25 * step,
-                "{setting}: {d} m, true step {step} m"
-            );
-        } else {
-            assert!(d < 0.25 * step, "{setting}: {d} m, true step {step} m");
-        }
-    }
+    check(
+        &full_rate,
+        40,
+        [("kept", true), ("measured", true), ("rest", false)],
+        None,
+    );
     // A relocalised frame's step (ten frames at the full rate, then every fifth: the frame at
     // position 11 is relocalised): carried into the new segments only with "kept".
     let faster: Vec<usize> = (0..10).chain((10..200).step_by(5)).collect();
-    let step = true_step(faster[12], faster[13]);
-    for (setting, moved) in [("kept", true), ("measured", false), ("rest", false)] {
-        let (system, states) = run(setting, &faster, 12..14);
-        assert_eq!(states[11], TrackState::Relocalised, "{setting}: {states:?}");
-        assert_eq!(
-            states[12..14],
-            [TrackState::Initialised; 2],
-            "{setting}: {states:?}"
-        );
-        let d = tracked_step(&system, 13);
-        if moved {
-            assert!(
-                (d - step).abs() < 0.25 * step,
-                "{setting}: {d} m, true step {step} m"
-            );
-        } else {
-            assert!(d < 0.25 * step, "{setting}: {d} m, true step {step} m");
-        }
-    }
+    check(
+        &faster,
+        12,
+        [("kept", true), ("measured", false), ("rest", false)],
+        Some(11),
+    );
     // An unknown setting is refused by name.
     let mut config = Config::default();
     config.tracking.segment_velocity = "constant".to_owned();
