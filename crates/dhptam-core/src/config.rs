@@ -463,10 +463,9 @@ config_section! {
         /// "rest"`, and to 240 % with `"measured"` (docs/BENCHMARKS.md, "The relocalised
         /// step's velocity, measured again"), so it is off.
         relocalised_velocity: bool = false,
-        /// The velocity a new map segment ([`reinitialise`](Self::reinitialise)) goes on
-        /// with: `"kept"`, the one the motion model placed it with; `"rest"`, none;
-        /// `"measured"`, the kept one unless it is a relocalised frame's step
-        /// ([`relocalised_velocity`](Self::relocalised_velocity)), which is dropped (so
+        /// The velocity a new map segment (`reinitialise`) goes on with: `"kept"`, the one
+        /// the motion model placed it with; `"rest"`, none; `"measured"`, the kept one unless
+        /// it is a relocalised frame's step (`relocalised_velocity`), which is dropped (so
         /// `"kept"` and `"measured"` differ only with that setting on).
         segment_velocity: String = "kept".to_owned(),
         /// Frames whose mean motion is the velocity of predicted (untracked) frames
