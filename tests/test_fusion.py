@@ -47,6 +47,20 @@ def test_the_default_caps_beta_of_well_exposed_frames_only():
         Config.from_toml("[fusion]\naps_beta_max = 1.5\n")
 
 
+def test_the_dvs_floor_renders_failing_frames_from_their_events():
+    normal, dark, bright = frame(40, 180), frame(0, 30), frame(230, 25)
+    paper = Config.from_toml("[fusion]\ndvs_beta_min = 0.5\n")
+    events_only = Config.from_toml("[fusion]\ndvs_beta_min = 1.0\n")
+    for f in (dark, bright):
+        r = f.mean() / f.max()
+        assert choose_beta(f, config=paper).beta == pytest.approx(max(r, 1 - r), abs=1e-12)
+        assert (choose_beta(f, config=events_only).bias, choose_beta(f, config=events_only).beta) == ("dvs", 1.0)
+    assert choose_beta(normal, 10, events_only).beta == 1.0  # too few features: DVS-biased
+    assert choose_beta(normal, 500, events_only).beta == 0.3  # APS-biased: the APS cap
+    with pytest.raises(ConfigError, match="dvs_beta_min"):
+        Config.from_toml("[fusion]\ndvs_beta_min = 1.5\n")
+
+
 def _noisy_ramp(low: float, high: float, sigma: float, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     ramp = np.linspace(low, high, 160)[None, :] + sigma * rng.standard_normal((120, 160))

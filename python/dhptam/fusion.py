@@ -4,7 +4,8 @@ All three run in the Rust core with the GIL released.
 
 * :func:`choose_beta`: with ``r = mean(C) / max(C)``, APS-biased
   ``beta = min(r, 1 - r, aps_beta_max)`` when the frame is usable (``[fusion] aps_beta_max``,
-  0.3; 1 gives the paper's uncapped form), DVS-biased ``beta = max(r, 1 - r)`` when more than
+  0.3; 1 gives the paper's uncapped form), DVS-biased ``beta = max(r, 1 - r, dvs_beta_min)``
+  (``dvs_beta_min`` 0.5: the paper's form) when more than
   ``[fusion] dvs_clipped_fraction`` of its pixels are under/over-exposed or fewer than
   ``min_features`` features were found on it; both capped at ``beta_max``; modes ``frames``
   (beta = 0) and ``events`` (beta = 1). See ``docs/FUSION.md``.

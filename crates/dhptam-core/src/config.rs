@@ -219,6 +219,10 @@ config_section! {
         /// the paper's example cap of 0.3 applied where it does not undo the mode: DVS-biased
         /// frames keep their β ≥ 1/2. 1 leaves min(r, 1 − r) uncapped (docs/FUSION.md).
         aps_beta_max: f64 = 0.3,
+        /// Lower bound on β of DVS-biased frames (under- or over-exposed frames, or frames
+        /// with too few features). The paper's max(r, 1 − r) is at least 1/2, so any value up
+        /// to 0.5 leaves it as it is; 1 renders such frames from their events alone.
+        dvs_beta_min: f64 = 0.5,
         /// Pixels at or below this 8-bit value count as under-exposed.
         dark_level: f64 = 20.0,
         /// Pixels at or above this 8-bit value count as over-exposed.
@@ -1045,6 +1049,12 @@ impl FusionConfig {
             (0.0..=1.0).contains(&self.aps_beta_max),
             "a weight in [0, 1]",
             self.aps_beta_max,
+        )?;
+        check(
+            "fusion.dvs_beta_min",
+            (0.0..=1.0).contains(&self.dvs_beta_min),
+            "a weight in [0, 1]",
+            self.dvs_beta_min,
         )?;
         check(
             "fusion.dark_level/bright_level",

@@ -468,6 +468,40 @@ fn the_aps_cap_bounds_only_aps_biased_frames() {
 }
 
 #[test]
+fn the_dvs_floor_bounds_only_dvs_biased_frames() {
+    let normal = frame(40.0, 180.0);
+    let dark = frame(0.0, 30.0);
+    let bright = frame(230.0, 25.0);
+    let floor = |dvs_beta_min: f64| FusionConfig {
+        dvs_beta_min,
+        ..FusionConfig::default()
+    };
+    // Up to 1/2 the floor leaves the paper's max(r, 1 − r) as it is.
+    for f in [&dark, &bright] {
+        let r = ratio(f);
+        for paper in [0.0, 0.5] {
+            let d = choose_beta(f, None, &floor(paper)).unwrap();
+            assert_eq!(d.bias, Bias::Dvs);
+            assert!((d.beta - r.max(1.0 - r)).abs() < 1e-12, "{d:?}");
+        }
+        // 1 renders a failing frame from its events alone, β_max still bounds it.
+        let d = choose_beta(f, None, &floor(1.0)).unwrap();
+        assert_eq!((d.bias, d.beta), (Bias::Dvs, 1.0));
+        let capped = FusionConfig {
+            beta_max: 0.3,
+            ..floor(1.0)
+        };
+        assert_eq!(choose_beta(f, None, &capped).unwrap().beta, 0.3);
+    }
+    // Too few features make a well-exposed frame DVS-biased, so the floor applies; with
+    // enough features it stays APS-biased under the APS cap.
+    let starved = choose_beta(&normal, Some(10), &floor(1.0)).unwrap();
+    assert_eq!((starved.bias, starved.beta), (Bias::Dvs, 1.0));
+    let fine = choose_beta(&normal, Some(500), &floor(1.0)).unwrap();
+    assert_eq!((fine.bias, fine.beta), (Bias::Aps, 0.3));
+}
+
+#[test]
 fn fusion_blends_frame_and_event_intensity() {
     let e3ct = [0.2f32, 0.9, 0.1, 0.0, 0.0, 0.0, 1.0, 0.5, 0.0];
     let d = intensity_from_e3ct(&e3ct, 3).unwrap();

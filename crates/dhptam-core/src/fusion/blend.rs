@@ -4,13 +4,15 @@
 //!
 //! ```text
 //! APS-biased (the frame is usable):    β = min(r, 1 − r, aps_β_max)
-//! DVS-biased (the frame fails):        β = max(r, 1 − r)   ≥ 1/2
+//! DVS-biased (the frame fails):        β = max(r, 1 − r, dvs_β_min)   ≥ 1/2
 //! then β = min(β, β_max)
 //! ```
 //!
 //! `aps_β_max` (`[fusion] aps_beta_max`, 0.3) caps the events' weight in well-exposed
 //! frames: uncapped, min(r, 1 − r) is about 0.45 for a typical frame, and the event edges
 //! blended in at that weight cost tracking accuracy under normal light (docs/FUSION.md).
+//! `dvs_β_min` (`[fusion] dvs_beta_min`, 0.5: the paper's formula) raises the events' weight
+//! in failing frames; 1 renders them from their events alone.
 //!
 //! The frame "fails" when it is under- or over-exposed — more than `dvs_clipped_fraction` of
 //! its pixels at or below `dark_level` or at or above `bright_level` — or when the caller
@@ -43,7 +45,8 @@ pub enum FusionMode {
 pub enum Bias {
     /// The frame is usable: β = min(r, 1 − r, aps_β_max).
     Aps,
-    /// The frame is under/over-exposed or yields too few features: β = max(r, 1 − r).
+    /// The frame is under/over-exposed or yields too few features: β = max(r, 1 − r,
+    /// dvs_β_min).
     Dvs,
     /// Mode `frames`: β = 0.
     FramesOnly,
@@ -131,7 +134,8 @@ pub fn choose_beta(
         FusionMode::Fusion => {
             let too_few = feature_count.is_some_and(|k| k < config.min_features as usize);
             if too_few || clipped_fraction > config.dvs_clipped_fraction {
-                (ratio.max(1.0 - ratio).min(config.beta_max), Bias::Dvs)
+                let beta = ratio.max(1.0 - ratio).max(config.dvs_beta_min);
+                (beta.min(config.beta_max), Bias::Dvs)
             } else {
                 let beta = ratio.min(1.0 - ratio).min(config.aps_beta_max);
                 (beta.min(config.beta_max), Bias::Aps)
