@@ -470,7 +470,9 @@ config_section! {
         /// The velocity a new map segment (`reinitialise`) goes on with: `"kept"`, the one
         /// the motion model placed it with; `"rest"`, none; `"measured"`, the kept one unless
         /// it is a relocalised frame's step (`relocalised_velocity`), which is dropped (so
-        /// `"kept"` and `"measured"` differ only with that setting on).
+        /// `"kept"` and `"measured"` differ only with that setting on). A segment started
+        /// right after another one that no frame was tracked against goes on from rest under
+        /// every value: a run of such frames is extrapolated over two frames at most.
         segment_velocity: String = "kept".to_owned(),
         /// Frames whose mean motion is the velocity of predicted (untracked) frames
         /// (`System::predict`, across illumination floods): the motion between the last

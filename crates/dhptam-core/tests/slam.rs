@@ -1724,14 +1724,15 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
         ..Default::default()
     };
     let frames = generate(&o);
-    // A frame no other frame matches: its descriptors negated (`flip`) or reversed, in the
-    // left and right views alike.
-    let glitched = |f: &SyntheticFrame, flip: bool| {
+    // A frame no other frame matches: its descriptors negated, reversed or both (`kind` 0, 1
+    // or 2), in the left and right views alike.
+    let glitched = |f: &SyntheticFrame, kind: usize| {
         let mut g = f.clone();
         for d in [&mut g.left.descriptors, &mut g.right.descriptors] {
-            if flip {
+            if kind != 1 {
                 d.iter_mut().for_each(|x| *x = -*x);
-            } else {
+            }
+            if kind != 0 {
                 d.chunks_exact_mut(32).for_each(|c| c.reverse());
             }
         }
@@ -1750,7 +1751,7 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
             .enumerate()
             .map(|(k, &i)| {
                 let f = if glitch.contains(&k) {
-                    glitched(&frames[i], k % 2 == 0)
+                    glitched(&frames[i], k % 3)
                 } else {
                     frames[i].clone()
                 };
@@ -1759,8 +1760,10 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
             .collect();
         (system, states)
     };
-    // Plays `order` with the frames at positions `glitch` (two) unmatchable, then checks where
-    // the second new segment lies from the first: one true step on when `moved`, else at it.
+    // Plays `order` with the frames at positions `glitch` (three) unmatchable, then checks
+    // where the second new segment lies from the first (one true step on when `moved`, else at
+    // it), and that the third lies at the second under every setting: a run of new segments
+    // is extrapolated over two frames at most.
     let check =
         |order: &[usize], glitch: usize, cases: [(&str, bool); 3], relocalised: Option<usize>| {
             let (a, b) = (order[glitch], order[glitch + 1]);
@@ -1768,13 +1771,13 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
                 - frames[a].world_from_cam.translation)
                 .norm();
             for (setting, moved) in cases {
-                let (system, states) = run(setting, order, glitch..glitch + 2);
+                let (system, states) = run(setting, &order[..glitch + 3], glitch..glitch + 3);
                 if let Some(k) = relocalised {
                     assert_eq!(states[k], TrackState::Relocalised, "{setting}: {states:?}");
                 }
                 assert_eq!(
-                    states[glitch..glitch + 2],
-                    [TrackState::Initialised; 2],
+                    states[glitch..glitch + 3],
+                    [TrackState::Initialised; 3],
                     "{setting}: {states:?}"
                 );
                 let d = tracked_step(&system, glitch + 1);
@@ -1782,6 +1785,13 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
                 assert!(
                     (d - expected).abs() < 0.25 * step,
                     "{setting}: {d} m, true step {step} m"
+                );
+                let held = tracked_step(&system, glitch + 2);
+                assert!(held < 1e-9, "{setting}: the third segment {held} m on");
+                assert_eq!(
+                    system.tracker_state().velocity,
+                    Se3::identity(),
+                    "{setting}"
                 );
             }
         };

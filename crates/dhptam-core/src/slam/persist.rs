@@ -388,6 +388,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         measured: last,
         // Not saved either: a loaded map's velocity counts as measured.
         velocity_relocalised: false,
+        fresh_segment: false,
     };
     let mut map = Map {
         next_keyframe: r.u64()?,

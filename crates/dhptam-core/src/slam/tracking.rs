@@ -327,6 +327,9 @@ pub struct TrackerState {
     /// Whether `velocity` is a relocalised frame's step (`[tracking] relocalised_velocity`)
     /// rather than the motion between two tracked frames.
     pub velocity_relocalised: bool,
+    /// Whether the last frame started a new map segment (`reinitialise`) and no frame has
+    /// been tracked or relocalised since: its pose was the motion model's extrapolation.
+    pub fresh_segment: bool,
 }
 
 impl Default for TrackerState {
@@ -338,6 +341,7 @@ impl Default for TrackerState {
             lost: false,
             measured: None,
             velocity_relocalised: false,
+            fresh_segment: false,
         }
     }
 }
@@ -606,6 +610,7 @@ pub fn bootstrap(
         lost: false,
         measured: Some(record),
         velocity_relocalised: false,
+        fresh_segment: false,
     };
     FrameOutcome {
         state: TrackState::Initialised,
@@ -617,6 +622,13 @@ pub fn bootstrap(
 
 /// Starts a new map segment from `frame`'s own stereo points at `world_from_cam` (the
 /// constant-velocity prediction) when the frame could be neither tracked nor relocalised.
+/// A segment started right after another one that no frame was tracked against goes on from
+/// rest whatever `[tracking] segment_velocity` says, so a run of such frames is extrapolated
+/// over two frames at most and then holds its pose. Two cover the usual glitch (one frame
+/// the map does not match, then one that does not match that frame's segment) while the
+/// camera moves on smoothly; extrapolating at every frame of a longer run (a camera come to
+/// rest in front of event cameras that see only noise) would carry the trajectory away at
+/// the last measured speed.
 /// Returns `None` when the frame has too few stereo points (the frame stays lost).
 pub fn reinitialise(
     map: &mut Map,
@@ -625,6 +637,7 @@ pub fn reinitialise(
     ctx: &TrackContext,
     world_from_cam: Se3,
 ) -> Option<FrameOutcome> {
+    let chained = state.fresh_segment;
     let (id, count) = insert_keyframe(map, frame, world_from_cam, &[], ctx.calib, ctx.tri);
     if count < ctx.cfg.init_min_points as usize {
         remove_keyframe(map, id);
@@ -633,8 +646,13 @@ pub fn reinitialise(
     map.segment_starts.insert(id);
     log::info!(
         "tracking: t={} ns: neither tracked nor relocalised; new map segment (keyframe {id}, \
-         {count} points) at the constant-velocity pose",
-        frame.t_ns
+         {count} points) at the constant-velocity pose{}",
+        frame.t_ns,
+        if chained {
+            "; the next one, if any, at rest"
+        } else {
+            ""
+        }
     );
     let record = FrameRecord {
         t_ns: frame.t_ns,
@@ -648,11 +666,13 @@ pub fn reinitialise(
     state.measured = Some(record);
     state.reference = Some(id);
     state.lost = false;
-    let from_rest = match ctx.cfg.segment_velocity.as_str() {
-        "kept" => false,
-        "rest" => true,
-        _ => state.velocity_relocalised,
-    };
+    state.fresh_segment = true;
+    let from_rest = chained
+        || match ctx.cfg.segment_velocity.as_str() {
+            "kept" => false,
+            "rest" => true,
+            _ => state.velocity_relocalised,
+        };
     if from_rest {
         state.velocity = Se3::identity();
         state.velocity_relocalised = false;
@@ -807,6 +827,7 @@ pub fn commit_tracked(
         _ => Se3::identity(),
     };
     state.velocity_relocalised = false;
+    state.fresh_segment = false;
     let reference_tracked = match state.reference.and_then(|r| map.keyframes.get_mut(&r)) {
         Some(k) if k.tracked == 0 => {
             k.tracked = tracked.inliers;
