@@ -54,7 +54,8 @@ def test_the_dvs_floor_renders_failing_frames_from_their_events():
     for f in (dark, bright):
         r = f.mean() / f.max()
         assert choose_beta(f, config=paper).beta == pytest.approx(max(r, 1 - r), abs=1e-12)
-        assert (choose_beta(f, config=events_only).bias, choose_beta(f, config=events_only).beta) == ("dvs", 1.0)
+        alone = choose_beta(f, config=events_only)
+        assert (alone.bias, alone.beta) == ("dvs", 1.0)
     assert choose_beta(normal, 10, events_only).beta == 1.0  # too few features: DVS-biased
     assert choose_beta(normal, 500, events_only).beta == 0.3  # APS-biased: the APS cap
     with pytest.raises(ConfigError, match="dvs_beta_min"):
