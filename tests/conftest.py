@@ -50,6 +50,22 @@ def sim_tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return simulate(tmp_path_factory.mktemp("sim"), preset="tiny", seed=0).path
 
 
+#: The rest of :func:`sim_tiny_pause`: (start, duration), seconds.
+PAUSE_S = (0.4, 0.5)
+
+
+@pytest.fixture(scope="session")
+def sim_tiny_pause(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """1.3 s of the ``tiny-mixed`` preset (128-pixel frames, normal lighting) along the real
+    ``ecd_poster_6dof`` trajectory, the camera held still over :data:`PAUSE_S` (``simulate``'s
+    ``pause``); simulated once per session (a few seconds)."""
+    from dhptam.sim import simulate
+
+    trajectory = str(shared_path("data", "trajectories", "ecd_poster_6dof.csv"))
+    folder = tmp_path_factory.mktemp("pause")
+    return simulate(folder, preset="tiny-mixed", trajectory=trajectory, duration_s=1.3, pause=PAUSE_S).path
+
+
 @pytest.fixture(scope="session")
 def sim_small_desk(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """0.5 s of the ``desk`` preset (320-pixel frames, normal lighting), simulated once per

@@ -8,7 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import shared_path
+from conftest import PAUSE_S, shared_path
 
 import dhptam
 from dhptam import SE3, _core
@@ -26,6 +26,7 @@ from dhptam.sim import (
     simulate,
     simulator_for,
 )
+from dhptam.sim.simulate import _paused
 
 HDR_DURATION_S = 2.0
 
@@ -223,6 +224,31 @@ def test_file_trajectories_are_fitted_into_the_room(tmp_path: Path):
     with pytest.raises(ParseError) as err:
         _core.sim_file_trajectory(str(bad), "tum")
     assert err.value.line == 3 and err.value.path == str(bad)
+
+
+def test_a_pause_holds_the_camera_still_and_shifts_the_rest_of_the_motion(sim_tiny_pause: Path) -> None:
+    """``simulate(pause=(start, duration))``: the ground truth stays at the pose of the last
+    trajectory sample before ``start`` for ``duration`` seconds, and from then on is the
+    unpaused motion ``duration`` later."""
+    (start, duration), ns = PAUSE_S, 1e9
+    truth = np.loadtxt(sim_tiny_pause / GROUND_TRUTH_FILE)
+    t = truth[:, 0]
+    still = truth[(t >= start) & (t < start + duration - 0.005)]  # the held sample may precede start
+    assert len(still) >= 9 and np.abs(still[:, 1:] - still[0, 1:]).max() < 1e-9
+    trajectory = str(shared_path("data", "trajectories", "ecd_poster_6dof.csv"))
+    unpaused = simulator_for("tiny-mixed", duration_s=1.3, trajectory=trajectory)
+    after = t > start + duration + 0.01
+    t_ns = np.round((t[after] - duration) * ns).astype(np.int64)
+    assert after.sum() >= 5 and np.allclose(unpaused.world_from_cam(0, t_ns), truth[after, 1:], atol=1e-6)
+    before = t < start - 0.01
+    t_ns = np.round(t[before] * ns).astype(np.int64)
+    assert np.allclose(unpaused.world_from_cam(0, t_ns), truth[before, 1:], atol=1e-8)
+    # The samples: the held one repeated after the pause, the later ones shifted; a pause
+    # past the last sample changes nothing.
+    t_s, poses = np.array([0, 10, 20, 30]), np.arange(28.0).reshape(4, 7)
+    t2, p2 = _paused(t_s, poses, (15, 115))
+    assert t2.tolist() == [0, 10, 110, 120, 130] and np.array_equal(p2[[1, 2]], poses[[1, 1]])
+    assert _paused(t_s, poses, (40, 50))[0] is t_s
 
 
 def test_simulator_for_rebuilds_the_simulator_that_wrote_a_sequence(tmp_path: Path):

@@ -49,6 +49,7 @@ def _simulate_command(args: argparse.Namespace) -> int:
         blackout=_span(args.blackout, "blackout"),
         shake=_span(args.shake, "shake"),
         hot_pixels=args.hot_pixels,
+        pause=_span(args.pause, "pause"),
     )
     sys.stdout.write(
         f"{summary.path}: {summary.frames} frame pairs, {summary.events_left} + {summary.events_right} "
@@ -102,6 +103,11 @@ def _add_simulate_command(sub: argparse._SubParsersAction) -> None:  # type: ign
     )
     simulate.add_argument(
         "--shake", metavar="START:DURATION", help="add a violent hand shake over this span in seconds"
+    )
+    simulate.add_argument(
+        "--pause",
+        metavar="START:DURATION",
+        help="hold the camera still from START for DURATION seconds, then go on along the motion",
     )
     simulate.add_argument(
         "--hot-pixels",

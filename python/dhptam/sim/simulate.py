@@ -82,12 +82,15 @@ def _build(
     motion: str,
     config: Config,
     shake: tuple[float, float] | None,
+    pause: tuple[float, float] | None = None,
 ) -> tuple[_core.Simulator, RigSpec, int]:
     """The simulator of a preset's rig along ``motion``, its rig and the simulated span (ns)."""
     rig = RIGS[spec.rig]
     cameras, imu_from_cam = rig.cameras(), rig.imu_from_cam()
     requested_ns = round((duration_s if duration_s is not None else spec.duration_s) * _NS)
     traj_t, traj_poses = _trajectory(motion, requested_ns)
+    if pause is not None:
+        traj_t, traj_poses = _paused(traj_t, traj_poses, _span_ns(pause, "pause"))
     if shake is not None:
         traj_poses = _shaken(traj_t, traj_poses, _span_ns(shake, "shake"))
     duration_ns = min(requested_ns, int(traj_t[-1]))
@@ -138,6 +141,7 @@ def simulate(
     blackout: tuple[float, float] | None = None,
     shake: tuple[float, float] | None = None,
     hot_pixels: float = 0.0,
+    pause: tuple[float, float] | None = None,
 ) -> SimulationSummary:
     """Simulate a sequence and write it to ``out_dir / name`` in the TUM-VIE layout.
 
@@ -175,6 +179,10 @@ def simulate(
         (see :func:`shake_offsets`): rotation up to about 0.33 rad about all axes at
         6-9 Hz (rates up to about 20 rad/s) and a few centimetres of translation, faded in and
         out over 0.1 s.
+    pause
+        ``(start_s, duration_s)``: the camera stops for that long (see :func:`_paused`), then
+        goes on along the rest of the motion, shifted by the pause; the sequence keeps its
+        duration, so its motion ends ``duration_s`` earlier.
     hot_pixels
         Fraction of each event camera's pixels that are hot (:class:`HotPixelSource`), like a
         real sensor's defective pixels; 0 (default) adds none.
@@ -201,7 +209,7 @@ def simulate(
     motion = trajectory or spec.motion
 
     started = time.perf_counter()
-    sim, rig, duration_ns = _build(spec, seed, duration_s, profile, motion, config, shake)
+    sim, rig, duration_ns = _build(spec, seed, duration_s, profile, motion, config, shake, pause)
     cameras, imu_from_cam = rig.cameras(), rig.imu_from_cam()
     frame_step_ns = round(_NS / fps)
     n_frames = max(1, duration_ns // frame_step_ns)
@@ -358,6 +366,24 @@ def shake_offsets(t_s: npt.NDArray[np.float64], duration_s: float) -> npt.NDArra
         out[:, axis] = amp_rad * env * wave / 1.4
         out[:, 3 + axis] = amp_m * env * np.cos(2 * np.pi * hz * t_s + phase)
     return out
+
+
+def _paused(
+    t_ns: npt.NDArray[np.int64], poses: npt.NDArray[np.float64], span_ns: tuple[int, int]
+) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+    """The trajectory samples ``(t_ns, poses)`` with the camera held still over the pause
+    ``span_ns``: from the last sample at or before its start (the first sample when the pause
+    starts before it), the pose stays for the pause's duration, and the later samples follow
+    shifted by it. A pause after the last sample leaves the trajectory unchanged."""
+    start, end = span_ns
+    held = max(int(np.searchsorted(t_ns, start, side="right")) - 1, 0)
+    if t_ns[held] > start or start > t_ns[-1]:
+        return t_ns, poses
+    after = np.arange(held, len(t_ns))
+    return (
+        np.concatenate([t_ns[: held + 1], t_ns[after] + (end - start)]),
+        np.concatenate([poses[: held + 1], poses[after]]),
+    )
 
 
 def _shaken(
