@@ -10,11 +10,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import PAUSE_S
 
 from dhptam import SE3, SO3, _core
 from dhptam.datasets import load_tumvie
 from dhptam.errors import ConfigError, InputError
-from dhptam.frontend import EVENT_BORDER_PX, MODES, Frontend, _exposed_like, is_flood
+from dhptam.frontend import EVENT_BORDER_PX, MODES, Frontend, _exposed_like, is_flood, is_quiet
 from dhptam.fusion import choose_beta
 from dhptam.sim import simulator_for
 
@@ -478,6 +479,38 @@ def test_floods_are_flagged_at_the_lighting_transitions_of_the_hdr_profile(seque
     off = Frontend(sequence, "fusion", _core.Config.from_toml("[fusion]\nflood_ratio = 0"), prefetch=0)
     assert not off.process(last_flood).flood
     assert not any(f.flood for f in Frontend(sequence, "frames", prefetch=0))
+
+
+def test_is_quiet_compares_with_the_median_of_the_usual_counts() -> None:
+    usual = [60_000, 52_000, 41_000, 900_000]  # the median, not the mean: 56 000
+    assert is_quiet(450, usual) and is_quiet(2_700, usual)
+    assert not is_quiet(2_900, usual)  # 5.2 % of the median
+    assert is_quiet(2_900, usual, ratio=0.1) and not is_quiet(450, usual, ratio=0.0)
+    assert not is_quiet(0, [])  # nothing to compare with (frame 0)
+
+
+def test_quiet_windows_are_those_of_a_camera_at_rest(sim_tiny_pause: Path) -> None:
+    """Issue 8: on a real trajectory with a rest inserted, exactly the event windows that lie
+    inside the rest are flagged quiet; none while the camera moves, none in mode frames or
+    with ``[fusion] quiet_ratio = 0``, and a window tested on its own (no history of this
+    front-end) gets the same flag from the windows before it."""
+
+    with load_tumvie(sim_tiny_pause) as seq:
+        fe = Frontend(seq, "events", prefetch=0)
+        frames = [fe.process(k) for k in range(len(fe))]
+        windows = [fe.window_ns(k) for k in range(len(fe))]
+        rest = (PAUSE_S[0] * _NS, (PAUSE_S[0] + PAUSE_S[1]) * _NS)
+        inside = [rest[0] <= t0 and t1 <= rest[1] for t0, t1 in windows]
+        outside = [t1 <= rest[0] or t0 >= rest[1] for t0, t1 in windows]
+        assert sum(inside) >= 8 and sum(outside) >= 14, (inside, outside)
+        for k, f in enumerate(frames):
+            if inside[k] or outside[k]:
+                assert f.quiet == inside[k], (k, f.quiet, f.e3ct_stats)
+        first = inside.index(True)
+        assert Frontend(seq, "events", prefetch=0).process(first).quiet
+        off = Frontend(seq, "events", _core.Config.from_toml("[fusion]\nquiet_ratio = 0"), prefetch=0)
+        assert not any(off.process(k).quiet for k in range(len(off)))
+        assert not any(f.quiet for f in Frontend(seq, "frames", prefetch=0))
 
 
 @pytest.mark.parametrize("depth_m", [0.0, 2.0])

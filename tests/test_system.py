@@ -363,6 +363,7 @@ def test_bridge_keyframes_keep_one_map_across_an_appearance_switch() -> None:
         "segments": 0,
         "relocalisations": 0,
         "predicted": 0,
+        "held": 0,
         "implausible": 0,
     }
     assert ate(positions(system), truth) < 0.03
@@ -462,6 +463,51 @@ def test_predicted_frames_extrapolate_the_motion_and_leave_the_map_alone(tmp_pat
     )
 
 
+def test_quiet_frames_that_cannot_be_tracked_are_held_at_rest() -> None:
+    """Issue 8: a camera at rest in front of event cameras sees sensor noise, whose features
+    stereo-match by chance but match nothing else. Flagged ``quiet``, such frames keep the
+    last pose (state ``held``) and the camera moving on is tracked against the same map;
+    unflagged, each starts a new map segment of noise points."""
+    frames = generate(frames=80, seed=3)
+    stop, rest = 39, 8
+    period = frames[1].t_ns - frames[0].t_ns
+    rng = np.random.default_rng(5)
+
+    def noise(k: int) -> Frame:
+        # Frame 39's view at a later time, its descriptors turned by a fresh random rotation
+        # (the same in both views): stereo pairs match, nothing matches across frames.
+        q, _ = np.linalg.qr(rng.normal(size=(frames[0].left.descriptors.shape[1],) * 2))
+        f = frames[stop]
+
+        def turned(v: Any) -> Any:
+            return type(v)(v.keypoints, np.ascontiguousarray(np.asarray(v.descriptors) @ q.T, np.float32))
+
+        return Frame(f.t_ns + k * period, f.world_from_cam, turned(f.left), turned(f.right))
+
+    at_rest = [noise(k) for k in range(1, rest + 1)]
+    moving = [Frame(f.t_ns + rest * period, f.world_from_cam, f.left, f.right) for f in frames[stop + 1 :]]
+
+    def play(quiet: bool) -> tuple[dhptam.System, list[Any]]:
+        system = dhptam.System(CALIB, None, threaded=False)
+        results = [system.track(f.t_ns, f.left, f.right) for f in frames[: stop + 1]]
+        results += [system.track(f.t_ns, f.left, f.right, quiet=quiet) for f in at_rest]
+        results += [system.track(f.t_ns, f.left, f.right) for f in moving]
+        return system, results
+
+    system, results = play(True)
+    states = [r.state for r in results]
+    assert states[stop + 1 : stop + 1 + rest] == ["held"] * rest, states
+    held = results[stop + 1 : stop + 1 + rest]
+    assert all(np.allclose(r.pose, results[stop].pose, atol=1e-9) for r in held)
+    assert states[stop + 1 + rest :] == ["ok"] * len(moving), states
+    totals = system.tracking_totals()
+    assert (totals["held"], totals["segments"], totals["relocalisations"]) == (rest, 0, 0), totals
+    truth = np.array([f.world_from_cam[:3, 3] for f in frames[: stop + 1] + at_rest + moving])
+    assert ate(positions(system), truth) < 0.03
+    plain, results = play(False)
+    assert plain.tracking_totals()["segments"] >= 2, [r.state for r in results]
+
+
 def test_a_bridge_spans_predicted_frames_between_two_appearances() -> None:
     """Frames 40-42 are a flood (predicted), frames 43-59 look the other way. The bridge from
     the last tracked frame (39) is inserted after the flood, at frame 39's pose: one map, no
@@ -500,6 +546,7 @@ def test_a_bridge_spans_predicted_frames_between_two_appearances() -> None:
         "segments": 0,
         "relocalisations": 0,
         "predicted": 3,
+        "held": 0,
         "implausible": 0,
     }
     assert len(system.trajectory()[0]) == 80

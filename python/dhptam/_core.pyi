@@ -451,6 +451,7 @@ class PySystem:
         event_stereo: EventStereo | None = None,
         viewpoint: tuple[float, float, float] = ...,  # (0.0, 0.0, 0.0)
         dvs_biased: bool = False,
+        quiet: bool = False,
     ) -> tuple[_FloatArray, str, int, bool]: ...
     # Predicted (untracked) frames across illumination floods (issue 8, accuracy).
     def predict(self, t_ns: int) -> tuple[_FloatArray, str, int, bool]: ...

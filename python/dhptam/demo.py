@@ -219,9 +219,11 @@ def _table(rows: list[DemoRow]) -> str:
         cells = [
             r.mode,
             str(r.run.frames),
-            # Flood frames whose pose the motion model predicted (issue 8) are not "tracked".
+            # Flood frames whose pose the motion model predicted (issue 8) and quiet frames held
+            # at rest are not "tracked".
             str(r.run.tracked)
-            + (f" + {r.run.tracking['predicted']} predicted" if r.run.tracking.get("predicted") else ""),
+            + (f" + {r.run.tracking['predicted']} predicted" if r.run.tracking.get("predicted") else "")
+            + (f" + {r.run.tracking['held']} held" if r.run.tracking.get("held") else ""),
             str(lost),
             f"{100 * ev.coverage:.0f} %" if ev else "–",
             f"{ev.ate_rmse_m:.4f}" if ev else "–",

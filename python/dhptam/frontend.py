@@ -38,6 +38,14 @@ Leaving a DVS-biased segment across a flood, the flood frames and the first clea
 whose frames are fine are rendered from the frames alone and tracked
 (:meth:`Frontend.across_flood`, ``flood_frames``): the flood spoils the events, not the frames.
 
+Quiet windows (``[fusion] quiet_ratio``): a camera come to rest leaves its event cameras only
+sensor noise, a small fraction of the usual event count, whose E3CT still yields keypoints that
+stereo-match by chance. :func:`is_quiet` flags a window with fewer events than ``quiet_ratio``
+× the median count of the last ``flood_history`` windows that were not quiet
+(:meth:`Frontend.quiet`); :attr:`FrontendFrame.quiet` carries the flag, and the run hands it to
+the tracker, which holds the pose of a quiet frame it cannot track instead of starting a new
+map segment on the noise.
+
 Depth of the warp plane: ``[fusion] plane_depth_m`` (default 0 = infinity, a rotation-only
 homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM on the first
 well-exposed frame pair. Infinity is the default because nothing about the scene is known before tracking
@@ -148,6 +156,24 @@ def is_flood(
     return bool(dominant > ratio * usual and dominant >= polarity * count)
 
 
+def is_quiet(count: int, usual: npt.ArrayLike, *, ratio: float = 0.05) -> bool:
+    """Whether an event window of ``count`` events is quiet: fewer than ``ratio`` times the
+    median of ``usual``, the event counts of recent windows that were not quiet. A camera at
+    rest leaves its event cameras only sensor noise, a small fraction of the count while it
+    moves (0.3–3 % on the simulator; the slowest moving windows there keep 4 % and more).
+    ``ratio = 0`` or no ``usual`` counts: never.
+
+    >>> is_quiet(450, [60_000, 52_000, 41_000])
+    True
+    >>> is_quiet(5_000, [60_000, 52_000, 41_000])  # slow, but moving
+    False
+    """
+    counts = np.asarray(usual, np.float64)
+    if ratio <= 0.0 or counts.size == 0:
+        return False
+    return bool(count < ratio * float(np.median(counts)))
+
+
 @dataclass(frozen=True)
 class FrontendFrame:
     """One processed stereo frame.
@@ -160,7 +186,9 @@ class FrontendFrame:
     or bordered in the event cameras), ``(H, W, C)`` float32 in [0, 1] (``None`` in mode
     ``frames``), for comparisons and visualisation. ``bias`` is the left camera's β mode
     (``aps``, ``dvs``, ``frames``, ``events``). ``flood``: the event window is an
-    illumination flood (:func:`is_flood`; always ``False`` in mode ``frames``).
+    illumination flood (:func:`is_flood`; always ``False`` in mode ``frames``). ``quiet``:
+    the event window is quiet, the camera likely at rest (:meth:`Frontend.quiet`; always
+    ``False`` in mode ``frames``).
     ``warp_depth_m``: depth in metres of the plane the events were warped through (0:
     infinity; 0 in mode ``frames`` and where nothing is warped). ``stretched``: whether the
     left/right frame failed the exposure test and was stretched to full contrast
@@ -184,6 +212,7 @@ class FrontendFrame:
     flood: bool = False
     warp_depth_m: float = 0.0
     stretched: tuple[bool, bool] = (False, False)
+    quiet: bool = False
 
 
 @dataclass(frozen=True)
@@ -317,6 +346,7 @@ class Frontend:
         self.flood_history: int = int(fusion_cfg["flood_history"])
         self.flood_predict: bool = bool(fusion_cfg["flood_predict"])
         self.flood_frames: bool = bool(fusion_cfg["flood_frames"])
+        self.quiet_ratio: float = float(fusion_cfg["quiet_ratio"])
         self.min_features: int = int(fusion_cfg["min_features"])
         self.warp_depth: str = str(fusion_cfg["warp_depth"])
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
@@ -331,6 +361,10 @@ class Frontend:
         self._event_stereo: dict[float, _core.EventStereo] = {}
         # Event counts (left + right) of the windows seen, by frame index (flood reference).
         self._window_counts: dict[int, int] = {}
+        # The quiet test's state: the counts of the last windows that were not quiet, and the
+        # index of the last window tested.
+        self._usual_counts: list[int] = []
+        self._quiet_index: int | None = None
         self.align_px: tuple[float, float] = (
             float(fusion_cfg["align_px"][0]),
             float(fusion_cfg["align_px"][1]),
@@ -607,6 +641,24 @@ class Frontend:
             ratio=self.flood_ratio,
             polarity=self.flood_polarity,
         )
+
+    def quiet(self, index: int, stats: E3ctStats) -> bool:
+        """Whether frame ``index``'s window (``stats``) is quiet (:func:`is_quiet`, ``[fusion]
+        quiet_ratio``) against the last ``flood_history`` windows that were not. Windows are
+        meant to come in order; when ``index`` does not follow the last window tested (the
+        first one, or a jump), the usual count restarts from the windows just before it, all
+        taken as moving."""
+        if self.quiet_ratio <= 0.0:
+            return False
+        if self._quiet_index is None or index != self._quiet_index + 1:
+            first = max(0, index - self.flood_history)
+            self._usual_counts = [self._window_count(k) for k in range(first, index)]
+        count = stats.events_left + stats.events_right
+        quiet = is_quiet(count, self._usual_counts, ratio=self.quiet_ratio)
+        if not quiet:
+            self._usual_counts = [*self._usual_counts, count][-self.flood_history :]
+        self._quiet_index = index
+        return quiet
 
     def _event_tensors(
         self, t0: int, t1: int, raw: tuple[EventWindow, EventWindow] | None = None
@@ -898,6 +950,7 @@ class Frontend:
             flood=self.flood(index, stats),
             warp_depth_m=depth,
             stretched=stretched,
+            quiet=self.quiet(index, stats),
         )
 
     def process(self, index: int) -> FrontendFrame:

@@ -14,7 +14,7 @@ others:
 
 Outputs (in ``out``): ``trajectory.tum`` (every tracked frame, left rectified frame camera,
 seconds), ``keyframes.tum``, ``map.ply``, ``frames.csv`` (per frame: state, inliers, β, fusion
-bias, flood flag, ``hot_pixels`` masked, ``stretched`` frames of the pair (exposure recovered),
+bias, flood and quiet flags, ``hot_pixels`` masked, ``stretched`` frames of the pair (exposure recovered),
 bridge, depth ``warp_depth_m`` of the event→frame warp plane, stage times), ``timing.json``
 (per stage statistics), ``config.toml`` (resolved) and
 ``run.log``. Each file is written to a temporary name and renamed, so a reader never sees half
@@ -76,14 +76,15 @@ class RunResult:
     files: dict[str, Path] = field(default_factory=dict)
     tracking: dict[str, int] = field(default_factory=dict)
     """Bridge keyframes at fusion-mode switches (``bridges``, ``bridges_refused``), new map
-    ``segments``, ``relocalisations``, flood frames ``predicted`` instead of tracked and
+    ``segments``, ``relocalisations``, flood frames ``predicted`` instead of tracked, quiet
+    frames ``held`` at rest and
     ``implausible`` tracked poses rejected for jumping away from the motion model
     (``dhptam.System.tracking_totals``)."""
 
     @property
     def tracked(self) -> int:
-        """Frames whose pose came from tracking (not lost, not only predicted)."""
-        return sum(n for s, n in self.states.items() if s not in ("lost", "predicted"))
+        """Frames whose pose came from tracking (not lost, not only predicted or held)."""
+        return sum(n for s, n in self.states.items() if s not in ("lost", "predicted", "held"))
 
     @property
     def fps(self) -> float:
@@ -824,6 +825,7 @@ def _track_frames(
                 "beta_left": f"{frame.beta_left:.4f}",
                 "bias": frame.bias,
                 "flood": int(frame.flood),
+                "quiet": int(frame.quiet),
                 "hot_pixels": 0 if (st := frame.e3ct_stats) is None else st.hot_left + st.hot_right,
                 "stretched": sum(frame.stretched),
                 "warp_depth_m": f"{frame.warp_depth_m:.4f}",
@@ -906,6 +908,7 @@ def _track_bridged(
             event_stereo=m.event_stereo,
             viewpoint=m.viewpoint,
             dvs_biased=m.dvs_biased,
+            quiet=frame.quiet,
         )
 
     def bridge_at(t_ns: int, primary: Any, a: ImageModel, secondary: Any, b: ImageModel) -> Any:

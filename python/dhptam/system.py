@@ -24,7 +24,7 @@ from . import _core
 from ._core import Config
 from .errors import InputError
 
-TrackState = Literal["initialised", "ok", "lost", "relocalised", "predicted"]
+TrackState = Literal["initialised", "ok", "lost", "relocalised", "predicted", "held"]
 
 
 class FeatureSet(Protocol):
@@ -126,6 +126,7 @@ class System:
         event_stereo: _core.EventStereo | None = None,
         viewpoint: tuple[float, float, float] = (0.0, 0.0, 0.0),
         dvs_biased: bool = False,
+        quiet: bool = False,
     ) -> TrackResult:
         """Tracks one rectified stereo frame taken at ``t_ns`` nanoseconds; ``sigma_scale``
         multiplies every keypoint σ of the frame (e.g. an event-dominated image).
@@ -144,7 +145,11 @@ class System:
         and bundle adjustment model their keypoints from there. ``dvs_biased`` marks the
         fusion's DVS-biased (event-dominated) rendering: such a frame becomes a keyframe under
         ``[tracking] dvs_keyframe_min_tracked`` tracked points instead of
-        ``keyframe_min_tracked``."""
+        ``keyframe_min_tracked``. ``quiet`` marks a quiet event window
+        (:meth:`dhptam.frontend.Frontend.quiet`: the camera likely at rest, its event images
+        sensor noise): when such a frame cannot be tracked it keeps the last pose (state
+        ``held``, the motion model restarting from rest) instead of being relocalised or
+        starting a new map segment on the noise."""
         return _track_result(
             t_ns,
             self._core.track(
@@ -159,6 +164,7 @@ class System:
                 event_stereo,
                 _viewpoint(viewpoint),
                 bool(dvs_biased),
+                bool(quiet),
             ),
         )
 
@@ -217,7 +223,8 @@ class System:
     def tracking_totals(self) -> dict[str, int]:
         """Since the start: ``bridges`` inserted, ``bridges_refused``, new map ``segments``
         (started at the constant-velocity pose), ``relocalisations``, ``predicted`` frames
-        (:meth:`predict`) and ``implausible`` tracked poses, rejected for jumping away from the
+        (:meth:`predict`), quiet frames ``held`` at rest (:meth:`track`) and ``implausible``
+        tracked poses, rejected for jumping away from the
         motion model's prediction (``[tracking] max_jump_ratio``)."""
         return self._core.tracking_totals()
 

@@ -37,6 +37,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         event_stereo: None,
         viewpoint: [0.0; 3],
         dvs_biased: false,
+        quiet: false,
     };
     let right = FrameFeatures {
         keypoints: &f.right.keypoints,
@@ -47,6 +48,7 @@ fn track(system: &mut System, f: &SyntheticFrame) {
         event_stereo: None,
         viewpoint: [0.0; 3],
         dvs_biased: false,
+        quiet: false,
     };
     system.track(f.t_ns, left, right).unwrap();
 }
@@ -111,6 +113,7 @@ fn track_bench(c: &mut Criterion, fuse: bool) {
                     viewpoints: vec![[0.0; 3]; lxy.len()],
                     descriptors: ld,
                     dvs_biased: false,
+                    quiet: false,
                 };
                 let t = track_local_map(map, &state, &frame, &ctx, predicted).unwrap();
                 assert!(t.inliers > 300);

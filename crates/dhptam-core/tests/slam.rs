@@ -283,6 +283,7 @@ fn threaded_stress_and_prompt_shutdown() {
         event_stereo: None,
         viewpoint: [0.0; 3],
         dvs_biased: false,
+        quiet: false,
     };
     assert!(system.track(f.t_ns, left, left).is_err());
 }
@@ -410,6 +411,7 @@ fn stereo_frame(f: &SyntheticFrame) -> StereoFrame<'_> {
         u_right,
         descriptors: ld,
         dvs_biased: false,
+        quiet: false,
     }
 }
 
@@ -434,6 +436,7 @@ fn a_frame_tracked_before_a_loop_correction_is_tracked_again_after_it() {
         keyframe: kf,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        held: false,
         position_cov: None,
     };
     let state = TrackerState {
@@ -546,6 +549,7 @@ fn the_centre_prior_holds_a_weakly_placed_keyframe_in_the_local_adjustment() {
                 keyframe,
                 kf_from_cam: Se3::identity(),
                 predicted: false,
+                held: false,
                 position_cov: Some(Matrix3::identity() * 1e-6),
             });
         }
@@ -1821,4 +1825,175 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
         .unwrap()
         .to_string();
     assert!(err.contains("segment_velocity"), "{err}");
+}
+
+#[test]
+fn a_quiet_frame_that_cannot_be_tracked_holds_its_pose_and_keeps_the_map() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 80,
+        seed: 6,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    // The camera stops at frame 39 for `rest` frames, where the event images show only
+    // sensor noise: frame 39's view with the signs of its descriptors' entries flipped by a
+    // fresh random mask at every frame, the same in both views (stereo pairs still match,
+    // nothing matches across frames or the map), flagged quiet when `quiet`; then it moves
+    // on through frames 40.. (their timestamps shifted).
+    let (stop, rest) = (39usize, 10i64);
+    let noise = |k: i64| {
+        let mut g = frames[stop].clone();
+        g.t_ns += k * o.period_ns;
+        // splitmix64 draws until about half the 32 signs flip (far from every other mask).
+        let mut state = k as u64;
+        let mask = loop {
+            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+            let m = (z ^ (z >> 31)) & 0xffff_ffff;
+            if (14..=18).contains(&m.count_ones()) {
+                break m;
+            }
+        };
+        for d in [&mut g.left.descriptors, &mut g.right.descriptors] {
+            for c in d.chunks_exact_mut(32) {
+                for (j, x) in c.iter_mut().enumerate() {
+                    if mask >> j & 1 == 1 {
+                        *x = -*x;
+                    }
+                }
+            }
+        }
+        g
+    };
+    let run = |quiet: bool| {
+        let mut system = System::new(o.calib, Config::default(), false).unwrap();
+        let (mut states, mut poses) = (Vec::new(), Vec::new());
+        let mut play = |system: &mut System, f: &SyntheticFrame, flagged: bool| {
+            let (mut left, mut right) = frame_features(f);
+            left.quiet = flagged;
+            right.quiet = flagged;
+            let r = system.track(f.t_ns, left, right).unwrap();
+            states.push(r.state);
+            poses.push(r.world_from_cam);
+        };
+        for (i, f) in frames[..=stop].iter().enumerate() {
+            // A quiet window that still tracks (slow motion) is tracked as usual.
+            play(&mut system, f, quiet && i == 20);
+        }
+        let keyframes = system.keyframe_trajectory().len();
+        for k in 1..=rest {
+            play(&mut system, &noise(k), quiet);
+        }
+        let keyframes_at_rest = system.keyframe_trajectory().len() - keyframes;
+        for f in &frames[stop + 1..] {
+            let mut moved = f.clone();
+            moved.t_ns += rest * o.period_ns;
+            play(&mut system, &moved, false);
+        }
+        (system, states, poses, keyframes_at_rest)
+    };
+    let (system, states, held, keyframes_at_rest) = run(true);
+    let totals = system.tracking_totals();
+    let at_rest = stop + 1..stop + 1 + rest as usize;
+    assert_eq!(states[20], TrackState::Ok, "{states:?}");
+    assert!(
+        states[at_rest.clone()]
+            .iter()
+            .all(|s| *s == TrackState::Held),
+        "{states:?}"
+    );
+    assert_eq!(totals.held, rest as u64, "{totals:?}");
+    assert_eq!(totals.segments, 0, "{totals:?}");
+    assert_eq!(totals.relocalisations, 0, "{totals:?}");
+    assert_eq!(keyframes_at_rest, 0);
+    // Every frame at rest kept the last tracked pose, and the camera moving again is tracked
+    // against the same map from there.
+    for k in at_rest.clone() {
+        let moved = (held[stop].inverse() * held[k]).log().norm();
+        assert!(
+            moved < 1e-12,
+            "frame {k}: {moved} from the last tracked pose"
+        );
+    }
+    let poses = system.tracked_trajectory();
+    assert_eq!(poses.len(), states.len(), "{states:?}");
+    assert!(
+        states[at_rest.end..].iter().all(|s| *s == TrackState::Ok),
+        "{states:?}"
+    );
+    let truth: Vec<Vector3<f64>> = (0..poses.len())
+        .map(|k| {
+            let i = if at_rest.contains(&k) {
+                stop
+            } else if k >= at_rest.end {
+                k - rest as usize
+            } else {
+                k
+            };
+            frames[i].world_from_cam.translation
+        })
+        .collect();
+    let e = ate(&positions(&poses), &truth);
+    assert!(e < 0.02, "ATE {e} m");
+    // The written trajectory (smoothed) keeps the camera near where it stopped: the smoother
+    // takes the held frames as measured rather than carrying the last speed into the rest
+    // (as unmeasured frames they drifted up to 0.9 of a step away). The stop and the restart
+    // are instantaneous here, and the smoother rounds both corners: the last held frame
+    // leans half a step towards the restart.
+    let smoothed = system.trajectory();
+    let step = (frames[stop + 1].world_from_cam.translation
+        - frames[stop].world_from_cam.translation)
+        .norm();
+    for k in at_rest.start..at_rest.end - 1 {
+        let d = (smoothed[k].1.translation - smoothed[stop].1.translation).norm();
+        assert!(
+            d < 0.4 * step,
+            "frame {k}: {d} m from the stop, a step is {step} m"
+        );
+    }
+    // The held flags travel through a saved map (flag 2 of the trajectory records).
+    let path = std::env::temp_dir().join(format!("dhptam-held-{}.bin", std::process::id()));
+    system.save_map(&path).unwrap();
+    let mut loaded = System::new(o.calib, Config::default(), false).unwrap();
+    loaded.load_map(&path).unwrap();
+    std::fs::remove_file(&path).ok();
+    let flags = |s: &System| {
+        s.with_map(|m| {
+            m.trajectory
+                .iter()
+                .map(|r| (r.predicted, r.held))
+                .collect::<Vec<_>>()
+        })
+    };
+    assert_eq!(flags(&loaded), flags(&system));
+    assert_eq!(
+        flags(&system)
+            .iter()
+            .filter(|f| **f == (true, true))
+            .count(),
+        rest as usize
+    );
+    // A flood frame predicted after the held ones (`System::predict`) stays at rest too.
+    let mut flooded = System::new(o.calib, Config::default(), false).unwrap();
+    for f in &frames[..=stop] {
+        track(&mut flooded, f);
+    }
+    let still = noise(1);
+    let (mut left, mut right) = frame_features(&still);
+    (left.quiet, right.quiet) = (true, true);
+    let last = flooded.track(still.t_ns, left, right).unwrap();
+    assert_eq!(last.state, TrackState::Held);
+    let predicted = flooded.predict(noise(2).t_ns).unwrap();
+    assert_eq!(predicted.state, TrackState::Predicted);
+    let moved = (last.world_from_cam.inverse() * predicted.world_from_cam)
+        .log()
+        .norm();
+    assert!(moved < 1e-12, "the flood frame predicted {moved} on");
+    // The same frames not flagged: each noise frame starts a new map segment.
+    let (plain, states, _, keyframes_at_rest) = run(false);
+    assert!(plain.tracking_totals().segments >= 2, "{states:?}");
+    assert!(keyframes_at_rest >= 2, "{keyframes_at_rest}");
 }

@@ -58,6 +58,7 @@ fn features<'a>(
     event_stereo: Option<&'a PyEventStereo>,
     viewpoint: [f32; 3],
     dvs_biased: bool,
+    quiet: bool,
 ) -> PyResult<FrameFeatures<'a>> {
     Ok(FrameFeatures {
         keypoints: keypoints
@@ -78,6 +79,7 @@ fn features<'a>(
         event_stereo: event_stereo.map(|e| &e.inner),
         viewpoint,
         dvs_biased,
+        quiet,
     })
 }
 
@@ -167,11 +169,12 @@ impl PySystem {
     /// rectified left frame camera's axes (event images warped through the plane at
     /// infinity: the left event camera's; zero: the frame cameras'); `dvs_biased`: the
     /// images are the fusion's DVS-biased rendering (keyframe floor `[tracking]
-    /// dvs_keyframe_min_tracked`).
+    /// dvs_keyframe_min_tracked`); `quiet`: the event window is quiet (the camera likely at
+    /// rest): a frame that cannot be tracked keeps the last pose (state "held").
     #[pyo3(signature = (
         t_ns, left_keypoints, left_descriptors, right_keypoints, right_descriptors,
         left_sigmas=None, sigma_scale=1.0, disparity=(1.0, 0.0), event_stereo=None,
-        viewpoint=(0.0, 0.0, 0.0), dvs_biased=false
+        viewpoint=(0.0, 0.0, 0.0), dvs_biased=false, quiet=false
     ))]
     #[allow(clippy::too_many_arguments)]
     fn track<'py>(
@@ -188,6 +191,7 @@ impl PySystem {
         event_stereo: Option<PyRef<'py, PyEventStereo>>,
         viewpoint: (f32, f32, f32),
         dvs_biased: bool,
+        quiet: bool,
     ) -> PyResult<TrackTuple<'py>> {
         let c = [viewpoint.0, viewpoint.1, viewpoint.2];
         let lk = keypoints(left_keypoints, "left.keypoints")?;
@@ -205,8 +209,19 @@ impl PySystem {
             es,
             c,
             dvs_biased,
+            quiet,
         )?;
-        let right = features(&rk, &rd, None, sigma_scale, disparity, es, c, dvs_biased)?;
+        let right = features(
+            &rk,
+            &rd,
+            None,
+            sigma_scale,
+            disparity,
+            es,
+            c,
+            dvs_biased,
+            quiet,
+        )?;
         let r = py
             .detach_guarded("slam::track", || self.with(|s| s.track(t_ns, left, right)))?
             .py()?;
@@ -277,9 +292,20 @@ impl PySystem {
         let ols = sigmas(other_left_sigmas, "other_left.sigmas")?;
         let (es, oes) = (event_stereo.as_deref(), other_event_stereo.as_deref());
         let primary = (
-            // A bridge is a keyframe whatever its count: the floor does not apply.
-            features(&lk, &ld, ls.as_ref(), sigma_scale, disparity, es, c, false)?,
-            features(&rk, &rd, None, sigma_scale, disparity, es, c, false)?,
+            // A bridge is a keyframe whatever its count: the floor does not apply; nor is
+            // it ever held.
+            features(
+                &lk,
+                &ld,
+                ls.as_ref(),
+                sigma_scale,
+                disparity,
+                es,
+                c,
+                false,
+                false,
+            )?,
+            features(&rk, &rd, None, sigma_scale, disparity, es, c, false, false)?,
         );
         let other = (
             features(
@@ -291,6 +317,7 @@ impl PySystem {
                 oes,
                 oc,
                 false,
+                false,
             )?,
             features(
                 &ork,
@@ -300,6 +327,7 @@ impl PySystem {
                 other_disparity,
                 oes,
                 oc,
+                false,
                 false,
             )?,
         );
@@ -311,7 +339,8 @@ impl PySystem {
         Ok(b.map(|b| (b.keyframe, b.linked, b.other_points)))
     }
 
-    /// {bridges, bridges_refused, segments, relocalisations, predicted} since the start.
+    /// {bridges, bridges_refused, segments, relocalisations, predicted, held, implausible}
+    /// since the start.
     fn tracking_totals<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let t = self.with(|s| s.tracking_totals());
         let d = PyDict::new(py);
@@ -320,6 +349,7 @@ impl PySystem {
         d.set_item("segments", t.segments)?;
         d.set_item("relocalisations", t.relocalisations)?;
         d.set_item("predicted", t.predicted)?;
+        d.set_item("held", t.held)?;
         d.set_item("implausible", t.implausible)?;
         Ok(d)
     }

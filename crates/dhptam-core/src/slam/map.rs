@@ -85,8 +85,15 @@ pub struct FrameRecord {
     /// Pose of the frame in the keyframe's camera frame, `kf_from_cam`.
     pub kf_from_cam: Se3,
     /// Whether the pose is a motion-model prediction without a measurement
-    /// ([`super::tracking::predict_only`]); see [`Map::trajectory_poses`].
+    /// ([`super::tracking::predict_only`], [`super::tracking::hold_pose`]); see
+    /// [`Map::trajectory_poses`].
     pub predicted: bool,
+    /// Whether the pose was held at rest for a quiet frame that could not be tracked
+    /// ([`super::tracking::hold_pose`]; `predicted` too). The camera is taken to have stayed
+    /// where it stopped: [`Map::trajectory_poses`] keeps the held pose, and the trajectory
+    /// smoother weighs the frame like a measured one (`position_cov`: the last measured
+    /// frame's) instead of letting its motion prior carry the last speed into the rest.
+    pub held: bool,
     /// Covariance of the camera centre as the tracker measured it against the map, m², in
     /// the frame's own camera axes (the translation block of [`crate::solver::PoseResult`]'s
     /// covariance); `None` where no refinement placed the frame (the first frame of a map
@@ -146,8 +153,8 @@ impl Map {
     /// [`Map::trajectory_poses`] with the camera centres of each map segment re-estimated by
     /// the trajectory smoother ([`super::smoothing`], acceleration-noise density `q`, m²/s³):
     /// each measured frame weighted by its [`FrameRecord::position_cov`] (a measured frame
-    /// without one, such as a segment's first, by the segment's median covariance), predicted
-    /// frames placed by the motion prior. Orientations are those of `trajectory_poses`.
+    /// without one, such as a segment's first, by the segment's median covariance, and so is
+    /// a frame held at rest), predicted frames placed by the motion prior. Orientations are those of `trajectory_poses`.
     pub fn smoothed_trajectory_poses(&self, q: f64) -> Result<Vec<(i64, Se3)>> {
         let records: Vec<&FrameRecord> = self
             .trajectory
@@ -191,7 +198,7 @@ impl Map {
                 sample_of.push(samples.len() - 1);
                 continue;
             }
-            let information = if r.predicted {
+            let information = if r.predicted && !r.held {
                 None
             } else {
                 // Σ_c = R Σ_ρ Rᵀ with R the camera's orientation in the world.
@@ -220,6 +227,8 @@ impl Map {
     /// those two measured poses, by time: once the frame after the run is measured, the
     /// interpolation uses both sides, where the prediction made while tracking extrapolated
     /// from one. A predicted run with no measured record after it keeps its predictions.
+    /// Frames held at rest ([`FrameRecord::held`]) keep their pose and bound a run like
+    /// measured ones.
     pub fn trajectory_poses(&self) -> Vec<(i64, Se3)> {
         let poses: Vec<(&FrameRecord, Se3)> = self
             .trajectory
@@ -227,14 +236,16 @@ impl Map {
             .filter_map(|r| self.frame_pose(r).map(|p| (r, p)))
             .collect();
         let mut out: Vec<(i64, Se3)> = poses.iter().map(|(r, p)| (r.t_ns, *p)).collect();
+        // Held frames keep their pose (the camera taken to be at rest): they end a run.
+        let anchor = |r: &FrameRecord| !r.predicted || r.held;
         let mut i = 0;
         while i < poses.len() {
-            if !poses[i].0.predicted {
+            if anchor(poses[i].0) {
                 i += 1;
                 continue;
             }
             let end = (i..poses.len())
-                .find(|&j| !poses[j].0.predicted)
+                .find(|&j| anchor(poses[j].0))
                 .unwrap_or(poses.len());
             if i > 0 && end < poses.len() {
                 let (a, pose_a) = poses[i - 1];

@@ -130,10 +130,14 @@ pub enum TrackState {
     /// Not measured: the pose was moved on with the motion model (`System::predict`, e.g.
     /// an event window flooded by a lighting change); the map is unchanged.
     Predicted,
+    /// Not measured: a quiet frame (few events against the usual count, so the camera is
+    /// likely at rest) that could not be tracked kept the last pose, and the motion model
+    /// restarts from rest; the map is unchanged (no relocalisation, no new map segment).
+    Held,
 }
 
 impl TrackState {
-    /// `"initialised"`, `"ok"`, `"lost"`, `"relocalised"` or `"predicted"`.
+    /// `"initialised"`, `"ok"`, `"lost"`, `"relocalised"`, `"predicted"` or `"held"`.
     pub fn as_str(self) -> &'static str {
         match self {
             TrackState::Initialised => "initialised",
@@ -141,6 +145,7 @@ impl TrackState {
             TrackState::Lost => "lost",
             TrackState::Relocalised => "relocalised",
             TrackState::Predicted => "predicted",
+            TrackState::Held => "held",
         }
     }
 }

@@ -3,7 +3,7 @@
 //! Layout: the magic `DHPTAMAP`, a `u32` version (6), the calibration, the descriptor kind
 //! and width, the tracker state, the id counters, the keyframes (per keypoint x, y, u_right
 //! and, since version 3, its σ), the map points, the loops, the trajectory (since version 4
-//! with a predicted flag per record, since version 5 with the camera centre's covariance when
+//! with a flag per record: 0 measured, 1 predicted, 2 held at rest; since version 5 with the camera centre's covariance when
 //! the tracker measured one: a flag and the upper triangle, 6 × f64) and (since version 2) the first keyframes of unjoined
 //! map segments; since version 6 each keypoint also stores its viewpoint (3 × f32, see
 //! `Keyframe::viewpoints`) after its σ; a map without viewpoints (all zero) is written as
@@ -271,7 +271,8 @@ pub(crate) fn save(
         w.i64(r.t_ns);
         w.u64(r.keyframe);
         w.se3(&r.kf_from_cam);
-        w.u8(r.predicted as u8);
+        // 0 measured, 1 predicted, 2 held at rest (read as predicted by builds before it).
+        w.u8(if r.held { 2 } else { r.predicted as u8 });
         match &r.position_cov {
             Some(c) => {
                 w.u8(1);
@@ -371,6 +372,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
             keyframe: r.u64()?,
             kf_from_cam: r.se3()?,
             predicted: false,
+            held: false,
             position_cov: None,
         })
     } else {
@@ -389,6 +391,7 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
         // Not saved either: a loaded map's velocity counts as measured.
         velocity_relocalised: false,
         fresh_segment: false,
+        at_rest: false,
     };
     let mut map = Map {
         next_keyframe: r.u64()?,
@@ -486,11 +489,14 @@ pub(crate) fn load(path: &Path) -> Result<Loaded> {
     }
     let n = r.len("trajectory record")?;
     for _ in 0..n {
+        let (t_ns, keyframe, kf_from_cam) = (r.i64()?, r.u64()?, r.se3()?);
+        let flag = if version >= 4 { r.u8()? } else { 0 };
         map.trajectory.push(FrameRecord {
-            t_ns: r.i64()?,
-            keyframe: r.u64()?,
-            kf_from_cam: r.se3()?,
-            predicted: version >= 4 && r.u8()? != 0,
+            t_ns,
+            keyframe,
+            kf_from_cam,
+            predicted: flag != 0,
+            held: flag == 2,
             position_cov: if version >= 5 && r.u8()? != 0 {
                 let mut c = Matrix3::zeros();
                 for (i, j) in COV_ENTRIES {

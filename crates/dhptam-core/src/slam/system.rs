@@ -16,7 +16,7 @@ use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
     bootstrap, bridge_keyframe, commit_tracked, consecutive_pose, constant_velocity_prediction,
-    last_pose, predict_only, reference_motion, reference_pose, reinitialise,
+    hold_pose, last_pose, predict_only, reference_motion, reference_pose, reinitialise,
     retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame, TrackContext,
     Tracked, TrackerState,
 };
@@ -66,6 +66,11 @@ pub struct FrameFeatures<'a> {
     /// `fusion`); a frame of such images gets the keyframe floor `[tracking]
     /// dvs_keyframe_min_tracked` (the left image's is used).
     pub dvs_biased: bool,
+    /// Whether the frame's event window is quiet (`[fusion] quiet_ratio`: a small fraction
+    /// of the usual event count, so the camera is likely at rest): when the frame cannot be
+    /// tracked its pose is held (state `Held`) instead of relocalised or started as a new
+    /// map segment of noise points (the left image's is used).
+    pub quiet: bool,
 }
 
 /// Maps a stereo match's measured disparity `d = u_left − u_right` of an image pair to the
@@ -308,6 +313,8 @@ pub struct TrackingTotals {
     pub relocalisations: u64,
     /// Frames moved on by the motion model without being tracked ([`System::predict`]).
     pub predicted: u64,
+    /// Quiet frames that could not be tracked and kept the last pose (state `Held`).
+    pub held: u64,
     /// Tracked poses rejected for jumping away from the constant-velocity prediction
     /// (`[tracking] max_jump_ratio`); each such frame went on to relocalisation.
     pub implausible: u64,
@@ -591,6 +598,7 @@ impl System {
         Ok(StereoFrame {
             t_ns,
             dvs_biased: left.dvs_biased,
+            quiet: left.quiet,
             viewpoints: vec![left.viewpoint; left_xy.len()],
             keypoints: left_xy,
             u_right,
@@ -779,6 +787,26 @@ impl System {
                         previous,
                         reacquired,
                     )
+                }
+                // A quiet window (the camera likely at rest): its event images show sensor
+                // noise, which neither relocalises nor makes a map segment worth keeping.
+                None if frame.quiet && !self.state.lost => {
+                    let mut map = write_lock(&shared.map);
+                    match hold_pose(&mut map, &mut self.state, t_ns) {
+                        Some(held) => {
+                            self.totals.held += 1;
+                            held
+                        }
+                        None => {
+                            self.state.lost = true;
+                            super::tracking::FrameOutcome {
+                                state: TrackState::Lost,
+                                world_from_cam: predicted.inverse(),
+                                inliers: 0,
+                                keyframe: None,
+                            }
+                        }
+                    }
                 }
                 None => match shared.time("relocalise", || self.relocalise(&frame, &ctx)) {
                     Some((t, reference)) => {

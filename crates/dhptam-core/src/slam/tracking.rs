@@ -35,6 +35,11 @@ pub struct StereoFrame<'a> {
     /// The images are the fusion's DVS-biased rendering: the keyframe floor is `[tracking]
     /// dvs_keyframe_min_tracked` instead of `keyframe_min_tracked`.
     pub dvs_biased: bool,
+    /// The event window is quiet (`[fusion] quiet_ratio`: few events against the usual
+    /// count, so the camera is likely at rest and the event images show sensor noise): when
+    /// the frame cannot be tracked its pose is held ([`hold_pose`]) instead of relocalised or
+    /// started as a new map segment.
+    pub quiet: bool,
 }
 
 /// The least number of tracked points under which `frame` becomes a keyframe whatever its
@@ -330,6 +335,9 @@ pub struct TrackerState {
     /// Whether the last frame started a new map segment (`reinitialise`) and no frame has
     /// been tracked or relocalised since: its pose was the motion model's extrapolation.
     pub fresh_segment: bool,
+    /// Whether the last frame's pose was held at rest ([`hold_pose`]) and no frame has been
+    /// tracked since: a prediction from it keeps the camera at rest.
+    pub at_rest: bool,
 }
 
 impl Default for TrackerState {
@@ -342,6 +350,7 @@ impl Default for TrackerState {
             measured: None,
             velocity_relocalised: false,
             fresh_segment: false,
+            at_rest: false,
         }
     }
 }
@@ -600,6 +609,7 @@ pub fn bootstrap(
         keyframe: id,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        held: false,
         position_cov: None,
     };
     map.trajectory.push(record);
@@ -611,6 +621,7 @@ pub fn bootstrap(
         measured: Some(record),
         velocity_relocalised: false,
         fresh_segment: false,
+        at_rest: false,
     };
     FrameOutcome {
         state: TrackState::Initialised,
@@ -659,6 +670,7 @@ pub fn reinitialise(
         keyframe: id,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        held: false,
         position_cov: None,
     };
     map.trajectory.push(record);
@@ -667,6 +679,7 @@ pub fn reinitialise(
     state.reference = Some(id);
     state.lost = false;
     state.fresh_segment = true;
+    state.at_rest = false;
     let from_rest = chained
         || match ctx.cfg.segment_velocity.as_str() {
             "kept" => false,
@@ -828,6 +841,7 @@ pub fn commit_tracked(
     };
     state.velocity_relocalised = false;
     state.fresh_segment = false;
+    state.at_rest = false;
     let reference_tracked = match state.reference.and_then(|r| map.keyframes.get_mut(&r)) {
         Some(k) if k.tracked == 0 => {
             k.tracked = tracked.inliers;
@@ -874,6 +888,7 @@ pub fn commit_tracked(
             keyframe: kf.id,
             kf_from_cam: kf.world_from_cam.inverse() * world_from_cam,
             predicted: false,
+            held: false,
             position_cov: tracked
                 .covariance
                 .map(|c| c.fixed_view::<3, 3>(0, 0).into_owned()),
@@ -937,7 +952,12 @@ pub fn predict_only(
     }
     let previous = last_pose(map, state)?;
     let reference = state.reference.and_then(|r| map.keyframes.get(&r))?;
-    let velocity = mean_velocity(map, state, velocity_frames).unwrap_or(state.velocity);
+    // Held at rest since the last measured frame: the camera stays where it was.
+    let velocity = if state.at_rest {
+        Se3::identity()
+    } else {
+        mean_velocity(map, state, velocity_frames).unwrap_or(state.velocity)
+    };
     // velocity = cam_from_world(k) · world_from_cam(k−1), so cam_from_world(k) = velocity ·
     // cam_from_world(k−1).
     let world_from_cam = (velocity * previous.inverse()).inverse();
@@ -946,12 +966,53 @@ pub fn predict_only(
         keyframe: reference.id,
         kf_from_cam: reference.world_from_cam.inverse() * world_from_cam,
         predicted: true,
+        held: false,
         position_cov: None,
     };
     map.trajectory.push(record);
     state.last = Some(record);
     Some(FrameOutcome {
         state: TrackState::Predicted,
+        world_from_cam,
+        inliers: 0,
+        keyframe: None,
+    })
+}
+
+/// Keeps the last pose for a quiet frame that could not be tracked ([`StereoFrame::quiet`]:
+/// the event window holds a small fraction of the usual events, so the camera is likely at
+/// rest and the event images show sensor noise, whose "features" match nothing). The last
+/// pose is recorded at `t_ns` relative to the reference keyframe and becomes the last frame,
+/// the velocity restarts from rest, and the map is unchanged: no relocalisation on noise and
+/// no new map segment of noise points, so when the camera moves again the next frame is
+/// tracked against the same map from where it stopped. Returns `None` when there is nothing
+/// to hold (not initialised, the last frame lost, or no reference keyframe).
+pub fn hold_pose(map: &mut Map, state: &mut TrackerState, t_ns: i64) -> Option<FrameOutcome> {
+    if state.lost {
+        return None;
+    }
+    let world_from_cam = last_pose(map, state)?;
+    let reference = state.reference.and_then(|r| map.keyframes.get(&r))?;
+    if !state.at_rest {
+        log::info!("tracking: t={t_ns} ns: quiet event window not tracked; pose held at rest");
+    }
+    let record = FrameRecord {
+        t_ns,
+        keyframe: reference.id,
+        kf_from_cam: reference.world_from_cam.inverse() * world_from_cam,
+        predicted: true,
+        held: true,
+        // As certain as the last measurement: the trajectory smoother takes the held frame
+        // as a measured one (see `FrameRecord::held`).
+        position_cov: state.measured.and_then(|m| m.position_cov),
+    };
+    map.trajectory.push(record);
+    state.last = Some(record);
+    state.velocity = Se3::identity();
+    state.velocity_relocalised = false;
+    state.at_rest = true;
+    Some(FrameOutcome {
+        state: TrackState::Held,
         world_from_cam,
         inliers: 0,
         keyframe: None,
@@ -1029,6 +1090,7 @@ pub fn bridge_keyframe(
         viewpoints,
         descriptors: descriptors.view(),
         dvs_biased: primary.dvs_biased,
+        quiet: primary.quiet,
     };
     let mut matches = tracked.matches;
     matches.resize(both.keypoints.len(), None);
@@ -1048,6 +1110,7 @@ pub fn bridge_keyframe(
         keyframe: id,
         kf_from_cam: Se3::identity(),
         predicted: false,
+        held: false,
         position_cov: None,
     };
     state.measured = Some(record);
@@ -1059,6 +1122,7 @@ pub fn bridge_keyframe(
             keyframe: id,
             kf_from_cam: world_from_cam.inverse() * last_world_from_cam,
             predicted: last.predicted,
+            held: last.held,
             position_cov: None,
         }
     });

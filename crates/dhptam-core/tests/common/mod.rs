@@ -26,6 +26,7 @@ pub fn view_features<'a>(
         event_stereo,
         viewpoint: [0.0; 3],
         dvs_biased: false,
+        quiet: false,
     }
 }
 
