@@ -19,7 +19,11 @@ docs/BENCHMARKS.md and writes the runs, ``eval.json`` files and ``report.md`` un
     python benches/bench_accuracy_normal.py [--duration 4] [--seed 1] [--modes fusion,frames,events]
         [--features orb] [--preset desk|tumvie-desk] [--lighting normal|hdr]
         [--out bench-accuracy] [--sync] [--warp-depth plane|tracked|both]
-        [--keypoint-sigma octave|unit]
+        [--keypoint-sigma octave|unit] [--pause START:DURATION]
+
+``--pause START:DURATION`` holds the camera still over that span of every sequence (the
+simulator's ``pause``: the motion goes on after it, the sequence keeps its duration), for
+stop-and-go runs: an event camera at rest sees only its noise.
 
 ``--warp-depth both`` runs the event modes with ``[fusion] warp_depth = "tracked"`` and
 ``"plane"`` in the same invocation (before/after figures from one run of the same code); the
@@ -78,6 +82,12 @@ def main() -> int:
         default="normal",
         help="normal (default) or hdr: the HDR demo's lighting profile over the duration",
     )
+    parser.add_argument(
+        "--pause",
+        metavar="START:DURATION",
+        default=None,
+        help="hold the camera still over this span in seconds (stop-and-go; default none)",
+    )
     parser.add_argument("--modes", default="fusion,frames,events")
     parser.add_argument("--features", default="orb", help="orb, sift, r2d2 or superpoint (default orb)")
     parser.add_argument("--out", type=Path, default=Path("bench-accuracy"))
@@ -111,8 +121,17 @@ def main() -> int:
     if not files:
         parser.error(f"no .csv/.tum/.txt trajectory in {args.trajectories}")
 
+    pause = None
+    if args.pause is not None:
+        try:
+            pause = tuple(float(v) for v in args.pause.split(":"))
+        except ValueError:
+            parser.error(f"--pause expects START:DURATION in seconds, got {args.pause!r}")
+        if len(pause) != 2:
+            parser.error(f"--pause expects START:DURATION in seconds, got {args.pause!r}")
     kind = "" if args.preset == "desk" else f"{args.preset}-"
-    root = cache_dir() / "sequences" / f"{args.lighting}-{kind}seed{args.seed}-{args.duration:g}s"
+    paused = "" if pause is None else f"-pause{pause[0]:g}+{pause[1]:g}"
+    root = cache_dir() / "sequences" / f"{args.lighting}-{kind}seed{args.seed}-{args.duration:g}s{paused}"
     hdr = args.lighting == "hdr"
     preset = {"desk": "demo", "tumvie-desk": "tumvie-hdr"}[args.preset] if hdr else args.preset
     head = TABLE_HEAD
@@ -120,7 +139,8 @@ def main() -> int:
         head = [TABLE_HEAD[0] + " normal / dark / bright light [mm] |", TABLE_HEAD[1] + "---|"]
     lines = [
         f"Sequences: first {args.duration:g} s of each trajectory (all of it where it is shorter), "
-        f"`{preset}` preset ({args.lighting} "
+        + ("" if pause is None else f"the camera still for {pause[1]:g} s from {pause[0]:g} s, ")
+        + f"`{preset}` preset ({args.lighting} "
         f"lighting), seed {args.seed}, features {args.features}, "
         f"configuration {args.config or 'default'}, "
         f"keypoint σ {args.keypoint_sigma or 'default'}; "
@@ -142,6 +162,7 @@ def main() -> int:
                 duration_s=args.duration,
                 trajectory=str(path),
                 overwrite=True,
+                pause=pause,
             )
         reference = load_trajectory(sequence / GROUND_TRUTH)
         lighting = lighting_of(sequence, preset, reference) if hdr else []
