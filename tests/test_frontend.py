@@ -483,9 +483,9 @@ def test_floods_are_flagged_at_the_lighting_transitions_of_the_hdr_profile(seque
 
 def test_is_quiet_compares_with_the_median_of_the_usual_counts() -> None:
     usual = [60_000, 52_000, 41_000, 900_000]  # the median, not the mean: 56 000
-    assert is_quiet(450, usual) and is_quiet(2_700, usual)
-    assert not is_quiet(2_900, usual)  # 5.2 % of the median
-    assert is_quiet(2_900, usual, ratio=0.1) and not is_quiet(450, usual, ratio=0.0)
+    assert is_quiet(450, usual) and is_quiet(1_600, usual)
+    assert not is_quiet(1_800, usual)  # 3.2 % of the median
+    assert is_quiet(1_800, usual, ratio=0.05) and not is_quiet(450, usual, ratio=0.0)
     assert not is_quiet(0, [])  # nothing to compare with (frame 0)
 
 
