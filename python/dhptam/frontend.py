@@ -160,7 +160,7 @@ def is_quiet(count: int, usual: npt.ArrayLike, *, ratio: float = 0.03) -> bool:
     """Whether an event window of ``count`` events is quiet: fewer than ``ratio`` times the
     median of ``usual``, the event counts of recent windows that were not quiet. A camera at
     rest leaves its event cameras only sensor noise, a small fraction of the count while it
-    moves (0.2–3 % on the simulator in normal light, 6 % in a dark room); a camera turning
+    moves (up to 3 % on the simulator in normal light, 6 % in a dark room); a camera turning
     back keeps about 4 %, which must not count as rest. ``ratio = 0`` or no ``usual``
     counts: never.
 

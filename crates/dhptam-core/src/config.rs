@@ -295,13 +295,13 @@ config_section! {
         /// frame is tracked as usual; when it cannot be, its pose is held at rest (state
         /// `held`: no relocalisation, no new map segment of noise points), so the camera
         /// moving again is tracked against the same map. On the simulator's sequences the
-        /// windows at rest held 0.2–1 % of the usual count in normal light, up to 3.1 % after
+        /// windows at rest held 1.1 % of the usual count or less in normal light, 3.1 % after
         /// a slow stop (whose last moving windows lower the median) and 5.9 % in the 40×
         /// darker room, where the sensor's noise is stronger; the turning points of the
-        /// `1d-trans` preset's back-and-forth motion 3.8–4.2 %, every other moving window
-        /// 9.8 % or more. Holding those turning points (at 0.05 and 0.08) made mode `events`
-        /// worse there on 5 of 7 seeds, so the default stays under them: rests in the dark
-        /// and the end of a slow stop go unflagged. 0 turns the detection off.
+        /// `1d-trans` preset's back-and-forth motion 3.8–5.1 %, every other moving window
+        /// 9.8 % or more. Holding those turning points (at 0.08) made mode `events` worse
+        /// there on 6 of 7 seeds, so the default stays under them: rests in the dark
+        /// and the end of a slow stop may go unflagged. 0 turns the detection off.
         quiet_ratio: f64 = 0.03,
         /// Depth of the event→frame warp plane during `dhptam run` (issue 8): "plane" warps
         /// every frame through `plane_depth_m`; "tracked" warps frame k through a plane at
