@@ -797,15 +797,7 @@ impl System {
                             self.totals.held += 1;
                             held
                         }
-                        None => {
-                            self.state.lost = true;
-                            super::tracking::FrameOutcome {
-                                state: TrackState::Lost,
-                                world_from_cam: predicted.inverse(),
-                                inliers: 0,
-                                keyframe: None,
-                            }
-                        }
+                        None => self.lose(t_ns, &predicted),
                     }
                 }
                 None => match shared.time("relocalise", || self.relocalise(&frame, &ctx)) {
@@ -855,18 +847,7 @@ impl System {
                         if restarted.is_some() {
                             self.totals.segments += 1;
                         }
-                        restarted.unwrap_or_else(|| {
-                            if !self.state.lost {
-                                log::info!("tracking: lost at t={t_ns} ns");
-                            }
-                            self.state.lost = true;
-                            super::tracking::FrameOutcome {
-                                state: TrackState::Lost,
-                                world_from_cam: predicted.inverse(),
-                                inliers: 0,
-                                keyframe: None,
-                            }
-                        })
+                        restarted.unwrap_or_else(|| self.lose(t_ns, &predicted))
                     }
                 },
             }
@@ -963,6 +944,21 @@ impl System {
     /// keyframe's local map from the PnP pose. The candidates: the place query's with the
     /// frame's embedding, then, when the previous frame was tracked, its reference keyframe
     /// (`[tracking] relocalise_reference`).
+    /// Marks the tracker lost at `t_ns` (logged when the loss starts): the frame's outcome,
+    /// at the motion model's prediction `predicted` (`cam_from_world`).
+    fn lose(&mut self, t_ns: i64, predicted: &Se3) -> super::tracking::FrameOutcome {
+        if !self.state.lost {
+            log::info!("tracking: lost at t={t_ns} ns");
+        }
+        self.state.lost = true;
+        super::tracking::FrameOutcome {
+            state: TrackState::Lost,
+            world_from_cam: predicted.inverse(),
+            inliers: 0,
+            keyframe: None,
+        }
+    }
+
     fn relocalise(
         &self,
         frame: &StereoFrame,
