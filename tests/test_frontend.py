@@ -486,7 +486,8 @@ def test_is_quiet_compares_with_the_median_of_the_usual_counts() -> None:
     assert is_quiet(450, usual) and is_quiet(1_600, usual)
     assert not is_quiet(1_800, usual)  # 3.2 % of the median
     assert is_quiet(1_800, usual, ratio=0.05) and not is_quiet(450, usual, ratio=0.0)
-    assert not is_quiet(0, [])  # nothing to compare with (frame 0)
+    assert not is_quiet(10, [])  # nothing to compare with (frame 0)
+    assert not is_quiet(0, usual)  # no event at all: missing data (a covered lens), not rest
 
 
 def test_quiet_windows_are_those_of_a_camera_at_rest(sim_tiny_pause: Path) -> None:

@@ -161,8 +161,9 @@ def is_quiet(count: int, usual: npt.ArrayLike, *, ratio: float = 0.03) -> bool:
     median of ``usual``, the event counts of recent windows that were not quiet. A camera at
     rest leaves its event cameras only sensor noise, a small fraction of the count while it
     moves (up to 3 % on the simulator in normal light, 6 % in a dark room); a camera turning
-    back keeps about 4 %, which must not count as rest. ``ratio = 0`` or no ``usual``
-    counts: never.
+    back keeps about 4 %, which must not count as rest. A window without a single event is
+    missing data (a covered lens, a gap in the stream), not a camera at rest, whose sensor
+    keeps firing its noise: never quiet. ``ratio = 0`` or no ``usual`` counts: never.
 
     >>> is_quiet(450, [60_000, 52_000, 41_000])
     True
@@ -170,7 +171,7 @@ def is_quiet(count: int, usual: npt.ArrayLike, *, ratio: float = 0.03) -> bool:
     False
     """
     counts = np.asarray(usual, np.float64)
-    if ratio <= 0.0 or counts.size == 0:
+    if ratio <= 0.0 or counts.size == 0 or count <= 0:
         return False
     return bool(count < ratio * float(np.median(counts)))
 
@@ -648,15 +649,16 @@ class Frontend:
         quiet_ratio``) against the last ``flood_history`` windows that were not. Windows are
         meant to come in order; when ``index`` does not follow the last window tested (the
         first one, or a jump), the usual count restarts from the windows just before it, all
-        taken as moving."""
+        taken as moving. Empty windows (no data) are never quiet and stay out of the usual
+        count."""
         if self.quiet_ratio <= 0.0:
             return False
         if self._quiet_index is None or index != self._quiet_index + 1:
             first = max(0, index - self.flood_history)
-            self._usual_counts = [self._window_count(k) for k in range(first, index)]
+            self._usual_counts = [c for k in range(first, index) if (c := self._window_count(k)) > 0]
         count = stats.events_left + stats.events_right
         quiet = is_quiet(count, self._usual_counts, ratio=self.quiet_ratio)
-        if not quiet:
+        if not quiet and count > 0:
             self._usual_counts = [*self._usual_counts, count][-self.flood_history :]
         self._quiet_index = index
         return quiet

@@ -301,7 +301,9 @@ config_section! {
         /// `1d-trans` preset's back-and-forth motion 3.8–5.1 %, every other moving window
         /// 9.8 % or more. Holding those turning points (at 0.08) made mode `events` worse
         /// there on 6 of 7 seeds, so the default stays under them: rests in the dark
-        /// and the end of a slow stop may go unflagged. 0 turns the detection off.
+        /// and the end of a slow stop may go unflagged. A window without any event (a
+        /// covered lens, a gap in the stream) is missing data, never quiet. 0 turns the
+        /// detection off.
         quiet_ratio: f64 = 0.03,
         /// Depth of the event→frame warp plane during `dhptam run` (issue 8): "plane" warps
         /// every frame through `plane_depth_m`; "tracked" warps frame k through a plane at
