@@ -961,22 +961,50 @@ pub fn predict_only(
     // velocity = cam_from_world(k) · world_from_cam(k−1), so cam_from_world(k) = velocity ·
     // cam_from_world(k−1).
     let world_from_cam = (velocity * previous.inverse()).inverse();
+    let reference = (reference.id, reference.world_from_cam);
+    Some(record_unmeasured(
+        map,
+        state,
+        reference,
+        t_ns,
+        world_from_cam,
+        false,
+        None,
+    ))
+}
+
+/// Records `world_from_cam` at `t_ns` as an unmeasured frame, relative to the reference
+/// keyframe `(id, world_from_cam)`, and makes it the last frame: predicted ([`predict_only`])
+/// or `held` at rest ([`hold_pose`]; `position_cov` weighs it in the trajectory smoother).
+fn record_unmeasured(
+    map: &mut Map,
+    state: &mut TrackerState,
+    reference: (u64, Se3),
+    t_ns: i64,
+    world_from_cam: Se3,
+    held: bool,
+    position_cov: Option<Matrix3<f64>>,
+) -> FrameOutcome {
     let record = FrameRecord {
         t_ns,
-        keyframe: reference.id,
-        kf_from_cam: reference.world_from_cam.inverse() * world_from_cam,
+        keyframe: reference.0,
+        kf_from_cam: reference.1.inverse() * world_from_cam,
         predicted: true,
-        held: false,
-        position_cov: None,
+        held,
+        position_cov,
     };
     map.trajectory.push(record);
     state.last = Some(record);
-    Some(FrameOutcome {
-        state: TrackState::Predicted,
+    FrameOutcome {
+        state: if held {
+            TrackState::Held
+        } else {
+            TrackState::Predicted
+        },
         world_from_cam,
         inliers: 0,
         keyframe: None,
-    })
+    }
 }
 
 /// Keeps the last pose for a quiet frame that could not be tracked ([`StereoFrame::quiet`]:
@@ -996,27 +1024,23 @@ pub fn hold_pose(map: &mut Map, state: &mut TrackerState, t_ns: i64) -> Option<F
     if !state.at_rest {
         log::info!("tracking: t={t_ns} ns: quiet event window not tracked; pose held at rest");
     }
-    let record = FrameRecord {
+    let reference = (reference.id, reference.world_from_cam);
+    // As certain as the last measurement: the trajectory smoother takes the held frame as a
+    // measured one (see `FrameRecord::held`).
+    let covariance = state.measured.and_then(|m| m.position_cov);
+    let outcome = record_unmeasured(
+        map,
+        state,
+        reference,
         t_ns,
-        keyframe: reference.id,
-        kf_from_cam: reference.world_from_cam.inverse() * world_from_cam,
-        predicted: true,
-        held: true,
-        // As certain as the last measurement: the trajectory smoother takes the held frame
-        // as a measured one (see `FrameRecord::held`).
-        position_cov: state.measured.and_then(|m| m.position_cov),
-    };
-    map.trajectory.push(record);
-    state.last = Some(record);
+        world_from_cam,
+        true,
+        covariance,
+    );
     state.velocity = Se3::identity();
     state.velocity_relocalised = false;
     state.at_rest = true;
-    Some(FrameOutcome {
-        state: TrackState::Held,
-        world_from_cam,
-        inliers: 0,
-        keyframe: None,
-    })
+    Some(outcome)
 }
 
 /// What [`bridge_keyframe`] inserted.
