@@ -15,7 +15,8 @@ from conftest import PAUSE_S
 from dhptam import SE3, SO3, _core
 from dhptam.datasets import load_tumvie
 from dhptam.errors import ConfigError, InputError
-from dhptam.frontend import EVENT_BORDER_PX, MODES, Frontend, _exposed_like, is_flood, is_quiet
+from dhptam.events import Activity
+from dhptam.frontend import EVENT_BORDER_PX, MODES, Frontend, _exposed_like, is_flood, is_noise, is_quiet
 from dhptam.fusion import choose_beta
 from dhptam.sim import simulator_for
 
@@ -490,11 +491,27 @@ def test_is_quiet_compares_with_the_median_of_the_usual_counts() -> None:
     assert not is_quiet(0, usual)  # no event at all: missing data (a covered lens), not rest
 
 
+def test_is_noise_needs_every_camera_without_structure() -> None:
+    noise, edges = Activity(57_600, 450, 60), Activity(57_600, 2_000, 1_500)
+    assert is_noise((noise, noise))
+    assert not is_noise((noise, edges)) and not is_noise((edges, edges))
+    assert not is_noise((noise, noise), share=0.0)  # off
+    assert not is_noise((noise, Activity(57_600, 0, 0)))  # a covered lens: missing data
+    busy = Activity(57_600, 7_000, 900)  # 12 % of the pixels fired: busy, never noise
+    assert busy.structured_share < 0.0025 and not is_noise((busy, busy))
+    assert not is_noise(())
+
+
 def test_quiet_windows_are_those_of_a_camera_at_rest(sim_tiny_pause: Path) -> None:
     """Issue 8: on a real trajectory with a rest inserted, exactly the event windows that lie
-    inside the rest are flagged quiet; none while the camera moves, none in mode frames or
-    with ``[fusion] quiet_ratio = 0``, and a window tested on its own (no history of this
-    front-end) gets the same flag from the windows before it."""
+    inside the rest are flagged quiet, and frame 0's, which ends a few milliseconds into the
+    recording; none while the camera moves, none in mode frames or with both tests off. Each
+    test finds the rest on its own: the count (``[fusion] quiet_ratio``) against the windows
+    before, the structure (``quiet_structure``) with no history at all, which also flags
+    frame 0. A window tested on its own (no history of this front-end) gets the same flag."""
+
+    def flags(fe: Frontend) -> list[bool]:
+        return [fe.process(k).quiet for k in range(len(fe))]
 
     with load_tumvie(sim_tiny_pause) as seq:
         fe = Frontend(seq, "events", prefetch=0)
@@ -502,15 +519,34 @@ def test_quiet_windows_are_those_of_a_camera_at_rest(sim_tiny_pause: Path) -> No
         windows = [fe.window_ns(k) for k in range(len(fe))]
         rest = (PAUSE_S[0] * _NS, (PAUSE_S[0] + PAUSE_S[1]) * _NS)
         inside = [rest[0] <= t0 and t1 <= rest[1] for t0, t1 in windows]
-        outside = [t1 <= rest[0] or t0 >= rest[1] for t0, t1 in windows]
+        outside = [k > 0 and (t1 <= rest[0] or t0 >= rest[1]) for k, (t0, t1) in enumerate(windows)]
         assert sum(inside) >= 8 and sum(outside) >= 14, (inside, outside)
         for k, f in enumerate(frames):
             if inside[k] or outside[k]:
                 assert f.quiet == inside[k], (k, f.quiet, f.e3ct_stats)
+        assert frames[0].quiet
+        stats = frames[inside.index(True)].e3ct_stats
+        assert stats is not None and stats.activity is not None
+        assert all(a.structured_share < 0.0025 for a in stats.activity), stats.activity
         first = inside.index(True)
         assert Frontend(seq, "events", prefetch=0).process(first).quiet
-        off = Frontend(seq, "events", _core.Config.from_toml("[fusion]\nquiet_ratio = 0"), prefetch=0)
-        assert not any(off.process(k).quiet for k in range(len(off)))
+        by_count = flags(
+            Frontend(seq, "events", _core.Config.from_toml("[fusion]\nquiet_structure = 0"), prefetch=0)
+        )
+        by_structure = flags(
+            Frontend(seq, "events", _core.Config.from_toml("[fusion]\nquiet_ratio = 0"), prefetch=0)
+        )
+        for k in range(1, len(fe)):
+            if inside[k] or outside[k]:
+                assert by_count[k] == by_structure[k] == inside[k], (k, by_count[k], by_structure[k])
+        assert by_structure[0] and not by_count[0]  # frame 0 has no history to count against
+        off = Frontend(
+            seq,
+            "events",
+            _core.Config.from_toml("[fusion]\nquiet_ratio = 0\nquiet_structure = 0"),
+            prefetch=0,
+        )
+        assert not any(flags(off))
         assert not any(f.quiet for f in Frontend(seq, "frames", prefetch=0))
 
 

@@ -497,28 +497,35 @@ def test_a_camera_at_rest_keeps_its_pose_and_its_map_in_mode_events(
     """Issue 8: while the camera rests its event cameras see only sensor noise. The quiet
     windows are flagged (``frames.csv`` column ``quiet``), the frames that cannot be tracked
     are held at the last pose, and tracking goes on against the same map when the camera moves
-    again: from the rest on, no new map segment and no lost frame. Without the detection
-    (``[fusion] quiet_ratio = 0``) the noise starts new map segments and frames are lost.
+    again: from the rest on, no new map segment and no lost frame. Frame 0, whose window ends
+    a few milliseconds into the recording (noise), does not start a map: it is held at the
+    pose of the first map, made by frame 1. Without the detection (``[fusion] quiet_ratio =
+    0``, ``quiet_structure = 0``) the noise starts new map segments and frames are lost.
 
-    Measured (seed 0, ORB, synchronous, 2026-12-07): 9 quiet frames, all held, then `ok`
-    (the run's one new map segment is at its second frame, before the rest); without: from
-    the rest on 1 new segment, 8 lost frames and a relocalisation."""
+    Measured (seed 0, ORB, synchronous, 2026-12-08): frame 0 held, then 9 quiet frames, all
+    held, then `ok` (the run's one new map segment is at its third frame, before the rest);
+    without: frame 0 lost, and from the rest on 1 new segment, 8 lost frames and a
+    relocalisation."""
     on = run(sim_tiny_pause, tmp_path / "on", mode="events", features="orb", progress=False, threaded=False)
     off = run(
         sim_tiny_pause, tmp_path / "off", mode="events", features="orb", progress=False, threaded=False,
-        config=_core.Config.from_toml("[fusion]\nquiet_ratio = 0\n"),
+        config=_core.Config.from_toml("[fusion]\nquiet_ratio = 0\nquiet_structure = 0\n"),
     )  # fmt: skip
     rows = _frames_table(tmp_path / "on")
-    quiet = [int(r["index"]) for r in rows if r["quiet"] == "1"]
-    held = [int(r["index"]) for r in rows if r["state"] == "held"]
+    quiet = [int(r["index"]) for r in rows if r["quiet"] == "1" and r["index"] != "0"]
+    held = [int(r["index"]) for r in rows if r["state"] == "held" and r["index"] != "0"]
     assert len(quiet) >= 8 and set(held) <= set(quiet) and len(held) >= len(quiet) - 1, (quiet, held)
-    assert on.tracking["held"] == len(held), on.tracking
-    assert on.tracked == on.frames - len(held) - on.states.get("lost", 0)
+    assert rows[0]["quiet"] == "1" and rows[0]["state"] == "held" and rows[1]["state"] == "initialised"
+    assert on.tracking["held"] == len(held) + 1, on.tracking
+    assert on.tracked == on.frames - len(held) - 1 - on.states.get("lost", 0)
+    t_s, poses = read_tum(tmp_path / "on" / "trajectory_frame_left.tum")
+    assert len(t_s) == on.frames and np.allclose(poses[0], poses[1]), poses[:2]
     since = [r["state"] for r in rows if int(r["index"]) >= quiet[0]]
     assert all(s in ("held", "ok") for s in since), since
     assert since[-1] == "ok"
     rows_off = _frames_table(tmp_path / "off")
     assert all(r["quiet"] == "0" for r in rows_off)
+    assert rows_off[0]["state"] == "lost"  # too few noise points to initialise
     since_off = [r["state"] for r in rows_off if int(r["index"]) >= quiet[0]]
     assert "initialised" in since_off and since_off.count("lost") >= 3, since_off
     assert off.tracking["held"] == 0 and off.tracking["segments"] > on.tracking["segments"], off.tracking

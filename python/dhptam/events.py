@@ -26,6 +26,7 @@ Example: one event at the centre of the decay kernel lands, with weight 1, in ch
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -144,6 +145,48 @@ def count_image(
     return _core._count_image(
         *_window(x, y, t_ns, p), int(width), int(height), int(t_start_ns), int(t_end_ns), polarity
     )
+
+
+@dataclass(frozen=True)
+class Activity:
+    """Pixel activity of one event window on one sensor (:func:`activity`): ``pixels`` of the
+    sensor, ``active`` pixels (at least one event) and ``supported`` ones (an active pixel
+    among their eight neighbours)."""
+
+    pixels: int
+    active: int
+    supported: int
+
+    @property
+    def active_share(self) -> float:
+        """Share of the sensor's pixels that are active."""
+        return self.active / self.pixels if self.pixels else 0.0
+
+    @property
+    def structured_share(self) -> float:
+        """Active pixels supported beyond chance, as a share of the sensor's pixels:
+        ``(supported - active * chance) / pixels``, with ``chance = 1 - (1 - active_share)**8``
+        the support independent pixels would get at that density. About zero for sensor noise
+        alone, whatever its rate; about the share of pixels on moving edges for a moving
+        camera; meaningless when most pixels are active."""
+        if not self.pixels:
+            return 0.0
+        chance = 1.0 - (1.0 - self.active_share) ** 8
+        return (self.supported - self.active * chance) / self.pixels
+
+
+def activity(x: npt.ArrayLike, y: npt.ArrayLike, *, width: int, height: int) -> Activity:
+    """How much of a window with events at pixels ``(x, y)`` of a ``width × height`` sensor is
+    scene structure rather than sensor noise (:class:`Activity`). A moving camera's events
+    line up along edges, so an active pixel mostly has an active neighbour; noise pixels fire
+    independently. An event outside the sensor raises :class:`dhptam.errors.InputError`.
+
+    >>> a = activity([10, 11, 12, 50], [5, 5, 5, 40], width=64, height=48)
+    >>> (a.active, a.supported)
+    (4, 3)
+    """
+    xs, ys = _typed(x, np.uint16, "x"), _typed(y, np.uint16, "y")
+    return Activity(*_core._event_activity(xs, ys, int(width), int(height)))
 
 
 def time_surface(
@@ -407,7 +450,9 @@ class HotPixels:
 
 
 __all__ = [
+    "Activity",
     "HotPixels",
+    "activity",
     "count_image",
     "e3ct",
     "fusion_times_ns",

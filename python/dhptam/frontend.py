@@ -38,13 +38,16 @@ Leaving a DVS-biased segment across a flood, the flood frames and the first clea
 whose frames are fine are rendered from the frames alone and tracked
 (:meth:`Frontend.across_flood`, ``flood_frames``): the flood spoils the events, not the frames.
 
-Quiet windows (``[fusion] quiet_ratio``): a camera come to rest leaves its event cameras only
-sensor noise, a small fraction of the usual event count, whose E3CT still yields keypoints that
-stereo-match by chance. :func:`is_quiet` flags a window with fewer events than ``quiet_ratio``
-× the median count of the last ``flood_history`` windows that were not quiet
-(:meth:`Frontend.quiet`); :attr:`FrontendFrame.quiet` carries the flag, and the run hands it to
-the tracker, which holds the pose of a quiet frame it cannot track instead of starting a new
-map segment on the noise.
+Quiet windows (``[fusion] quiet_ratio``, ``quiet_structure``): a camera come to rest leaves its
+event cameras only sensor noise, whose E3CT still yields keypoints that stereo-match by chance.
+Two tests flag such a window (:meth:`Frontend.quiet`): :func:`is_quiet`, fewer events than
+``quiet_ratio`` × the median count of the last ``flood_history`` windows that were not quiet,
+and :func:`is_noise`, no structure in either event camera (its firing pixels have firing
+neighbours no more often than independent noise would, :func:`dhptam.events.activity`), which
+needs no history and holds in the dark, where the noise is a larger share of the events.
+:attr:`FrontendFrame.quiet` carries the flag, and the run hands it to the tracker, which holds
+the pose of a quiet frame it cannot track instead of starting a new map segment on the noise,
+and never initialises a map from a quiet frame's event images.
 
 Depth of the warp plane: ``[fusion] plane_depth_m`` (default 0 = infinity, a rotation-only
 homography), or ``plane_depth="auto"``: the median scene depth from StereoSGBM on the first
@@ -79,7 +82,7 @@ from ._config import with_setting
 from ._prefetch import prefetched
 from .datasets import EventWindow, FramePair, Sequence
 from .errors import InputError
-from .events import e3ct, shared_scales
+from .events import Activity, activity, e3ct, shared_scales
 from .fusion import choose_beta, fuse, recover_exposure, warp_and_fuse, warp_to_frame
 from .geometry import SE3, RectifiedStereo, StereoRig
 
@@ -112,7 +115,9 @@ class RectifiedCalibration(NamedTuple):
 class E3ctStats:
     """Event statistics of one frame's window (``on_left``/``on_right``: ON events among
     ``events_left``/``events_right``; ``hot_left``/``hot_right``: raw pixels whose events were
-    dropped as hot pixels, see ``[events] hot_pixel_ratio``)."""
+    dropped as hot pixels, see ``[events] hot_pixel_ratio``; ``activity``: the pixel activity of
+    each camera's raw window, left and right, see :func:`dhptam.events.activity`, or ``None``
+    where ``[fusion] quiet_structure = 0``)."""
 
     window_start_ns: int
     window_end_ns: int
@@ -125,6 +130,7 @@ class E3ctStats:
     on_right: int = 0
     hot_left: int = 0
     hot_right: int = 0
+    activity: tuple[Activity, Activity] | None = None
 
 
 def is_flood(
@@ -174,6 +180,33 @@ def is_quiet(count: int, usual: npt.ArrayLike, *, ratio: float = 0.03) -> bool:
     if ratio <= 0.0 or counts.size == 0 or count <= 0:
         return False
     return bool(count < ratio * float(np.median(counts)))
+
+
+# Above this share of firing pixels a window is busy, never noise: the structure test loses its
+# meaning as chance support nears one (at rest the simulator's noise fired 4 % at most).
+_NOISE_MAX_ACTIVE = 0.1
+
+
+def is_noise(activities: tuple[Activity, ...], *, share: float = 0.0025) -> bool:
+    """Whether every event camera's window (``activities``, :func:`dhptam.events.activity`)
+    shows sensor noise and no scene structure: pixels supported beyond chance
+    (:attr:`~dhptam.events.Activity.structured_share`) under ``share`` of the sensor, and
+    under 10 % of its pixels active. Noise pixels fire independently, so at rest the share
+    stays near zero whatever the noise rate; a moving camera's events line up along edges.
+    An empty window is missing data, not noise (see :func:`is_quiet`); ``share = 0`` or no
+    windows: never.
+
+    >>> from dhptam.events import Activity
+    >>> is_noise((Activity(57_600, 450, 60), Activity(57_600, 440, 55)))
+    True
+    >>> is_noise((Activity(57_600, 900, 700), Activity(57_600, 450, 60)))  # one sees edges
+    False
+    """
+    if share <= 0.0 or not activities:
+        return False
+    return all(
+        a.active > 0 and a.active_share < _NOISE_MAX_ACTIVE and a.structured_share < share for a in activities
+    )
 
 
 @dataclass(frozen=True)
@@ -349,6 +382,7 @@ class Frontend:
         self.flood_predict: bool = bool(fusion_cfg["flood_predict"])
         self.flood_frames: bool = bool(fusion_cfg["flood_frames"])
         self.quiet_ratio: float = float(fusion_cfg["quiet_ratio"])
+        self.quiet_structure: float = float(fusion_cfg["quiet_structure"])
         self.min_features: int = int(fusion_cfg["min_features"])
         self.warp_depth: str = str(fusion_cfg["warp_depth"])
         self.warp_depth_step_px: float = float(fusion_cfg["warp_depth_step_px"])
@@ -599,14 +633,15 @@ class Frontend:
         )
 
     def _rectified_events(self, side: str, t0: int, t1: int) -> tuple[EventWindow, int]:
-        window, count, _ = self._rectified_events_counted(side, t0, t1)
+        window, count, _, _ = self._rectified_events_counted(side, t0, t1)
         return window, count
 
     def _rectified_events_counted(
         self, side: str, t0: int, t1: int, raw: EventWindow | None = None
-    ) -> tuple[EventWindow, int, int]:
-        """The rectified window, its raw event count and its raw ON-event count (``raw``: the
-        window already read, else it is read here). The window first updates the camera's
+    ) -> tuple[EventWindow, int, int, Activity | None]:
+        """The rectified window, its raw event count, its raw ON-event count and the raw
+        window's pixel activity (``None`` with ``[fusion] quiet_structure = 0``); ``raw``: the
+        window already read, else it is read here. The window first updates the camera's
         hot-pixel detector, and the events of its hot pixels are dropped."""
         if raw is None:
             raw = self.sequence.events[side].window(t0, t1)
@@ -614,7 +649,12 @@ class Frontend:
         if hot is not None and hot.update(raw.x, raw.y, (t1 - t0) * 1e-9):
             self._rectifiers[side].set_masked(hot.pixels())
         x, y, t, p = self._rectifiers[side].apply(raw.x, raw.y, raw.t_ns, raw.p, t0, t1)
-        return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw), int(np.count_nonzero(raw.p))
+        pixels = None
+        if self.quiet_structure > 0.0:
+            # On the sensor's own pixels, whose neighbours are the ones noise is independent of.
+            cam = self.sequence.calibration.cameras[f"event_{side}"]
+            pixels = activity(raw.x, raw.y, width=cam.width, height=cam.height)
+        return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw), int(np.count_nonzero(raw.p)), pixels
 
     def _window_count(self, index: int) -> int:
         """Raw events (left + right) in the window of frame ``index``, read once."""
@@ -645,19 +685,22 @@ class Frontend:
         )
 
     def quiet(self, index: int, stats: E3ctStats) -> bool:
-        """Whether frame ``index``'s window (``stats``) is quiet (:func:`is_quiet`, ``[fusion]
-        quiet_ratio``) against the last ``flood_history`` windows that were not. Windows are
-        meant to come in order; when ``index`` does not follow the last window tested (the
-        first one, or a jump), the usual count restarts from the windows just before it, all
-        taken as moving. Empty windows (no data) are never quiet and stay out of the usual
-        count."""
-        if self.quiet_ratio <= 0.0:
+        """Whether frame ``index``'s window (``stats``) is quiet: by its count against the last
+        ``flood_history`` windows that were not (:func:`is_quiet`, ``[fusion] quiet_ratio``),
+        or by the lack of structure in both event cameras (:func:`is_noise`, ``[fusion]
+        quiet_structure``), which needs no history. Windows are meant to come in order; when
+        ``index`` does not follow the last window tested (the first one, or a jump), the
+        usual count restarts from the windows just before it, all taken as moving. Empty
+        windows (no data) are never quiet and stay out of the usual count."""
+        if self.quiet_ratio <= 0.0 and self.quiet_structure <= 0.0:
             return False
         if self._quiet_index is None or index != self._quiet_index + 1:
             first = max(0, index - self.flood_history)
             self._usual_counts = [c for k in range(first, index) if (c := self._window_count(k)) > 0]
         count = stats.events_left + stats.events_right
-        quiet = is_quiet(count, self._usual_counts, ratio=self.quiet_ratio)
+        quiet = is_quiet(count, self._usual_counts, ratio=self.quiet_ratio) or (
+            stats.activity is not None and is_noise(stats.activity, share=self.quiet_structure)
+        )
         if not quiet and count > 0:
             self._usual_counts = [*self._usual_counts, count][-self.flood_history :]
         self._quiet_index = index
@@ -675,10 +718,12 @@ class Frontend:
         on_counts: dict[str, int] = {}
         tensors = []
         rect_counts: dict[str, int] = {}
+        activities: list[Activity | None] = []
         for k, side in enumerate(("left", "right")):
-            window, raw_counts[side], on_counts[side] = self._rectified_events_counted(
+            window, raw_counts[side], on_counts[side], pixels = self._rectified_events_counted(
                 side, t0, t1, None if raw is None else raw[k]
             )
+            activities.append(pixels)
             rect_counts[side] = len(window)
             tensors.append(
                 e3ct(
@@ -709,6 +754,9 @@ class Frontend:
             on_right=on_counts["right"],
             hot_left=self._rectifiers["left"].masked_count,
             hot_right=self._rectifiers["right"].masked_count,
+            activity=None
+            if activities[0] is None or activities[1] is None
+            else (activities[0], activities[1]),
         )
         return tensors, stats
 

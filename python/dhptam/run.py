@@ -221,6 +221,9 @@ class _Outputs:
         self.meta: dict[str, Any] = {}
         self.recorder: Any = None  # a dhptam.datasets.mcap.McapRecorder with --record
         self.record_path: Path | None = None
+        # Frames whose state changed after they were recorded (index → state), applied when
+        # frames.csv is written: quiet frames before the first map, held at its pose.
+        self._restated: dict[int, str] = {}
 
     def _rectified(self, t_ns: Any, poses: Any) -> tuple[Any, Any]:
         """The back-end's ``(t_ns, world_from_tracked)`` as the rectified left frame camera's."""
@@ -233,6 +236,25 @@ class _Outputs:
         self.count += 1
         for s in STAGES:
             self.times[s].append(row[f"{s}_s"])
+
+    def restate(self, indices: list[int], state: str) -> None:
+        """Frames ``indices``, already recorded, end up in ``state`` (in ``frames.csv``)."""
+        self._restated.update(dict.fromkeys(indices, state))
+
+    def _rows(self) -> str:
+        """The spooled rows, with the states :meth:`restate` changed."""
+        text = self._spool.read()
+        if not self._restated:
+            return text
+        column = self.header.index("state")
+        lines = text.splitlines(keepends=True)
+        for k, line in enumerate(lines):
+            index = int(line.split(",", 1)[0])
+            if index in self._restated:
+                cells = line.split(",")
+                cells[column] = self._restated[index]
+                lines[k] = ",".join(cells)
+        return "".join(lines)
 
     def close(self) -> None:
         self._spool.close()
@@ -301,7 +323,7 @@ class _Outputs:
         self._spool.flush()
         self._spool.seek(0)
         path = self.out / "frames.csv"
-        atomic_write_text(path, ",".join(self.header) + "\n" + self._spool.read())
+        atomic_write_text(path, ",".join(self.header) + "\n" + self._rows())
         self._spool.seek(0, io.SEEK_END)
         files["frames"] = path
         timing = {
@@ -786,11 +808,15 @@ def _track_frames(
     the motion model (``System.predict``) instead of tracked, and the last clean frame stays
     the one a bridge keyframe may start from. After each frame the median depth of the map
     points it was tracked with goes to ``feed`` (the next frame's warp depth). ``model`` gives
-    each image's :class:`ImageModel` from its fusion bias and warp depth."""
+    each image's :class:`ImageModel` from its fusion bias and warp depth. Quiet frames of
+    event images before the first map are lost when tracked; the back-end holds them at the
+    first map's pose once it is made, and their rows say ``held``."""
     wall0 = time.perf_counter()
     t_first: int | None = None
     # (frame index, (left, right) features it was tracked with, their image model)
     last: tuple[int, Any, ImageModel] | None = None
+    # Before the first map: the last run of quiet frames lost, which the map may hold.
+    mapped, rest = False, list[int]()
 
     for frame, t_front, left, right, t_extract, bridge, t_read in extracted:
         if interrupt_pending():
@@ -802,6 +828,7 @@ def _track_frames(
                 time.sleep(wait)
         if outputs.recorder is not None:
             outputs.recorder.add_frame(frame.index)
+        held_before = 0 if mapped else system.tracking_totals()["held"]
         t0 = time.perf_counter()
         if predicts is not None and predicts(frame, min(len(left.keypoints), len(right.keypoints))):
             r, bridged = system.predict(frame.t_ns), "none"
@@ -812,6 +839,20 @@ def _track_frames(
         if feed is not None:
             feed.publish(frame.index, system.tracked_depth())
         states[r.state] += 1
+        if not mapped:
+            if r.state == "initialised":
+                mapped = True
+                held = system.tracking_totals()["held"] - held_before
+                if held:
+                    outputs.restate(rest[-held:], "held")
+                    states["lost"] -= held
+                    states["held"] += held
+                    if not states["lost"]:
+                        del states["lost"]
+            elif r.state == "lost" and frame.quiet:
+                rest.append(frame.index)
+            else:
+                rest.clear()
         sink.frame(frame, left, right, r)
         outputs.record(
             {

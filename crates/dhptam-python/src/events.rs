@@ -182,6 +182,26 @@ pub fn _count_image<'py>(
     })
 }
 
+/// Pixel activity of one window: `(pixels, active, supported)` (see the core's
+/// `events::activity`); x and y uint16, C-contiguous, read in place with the GIL released.
+#[pyfunction]
+#[pyo3(signature = (x, y, width, height))]
+pub fn _event_activity(
+    py: Python<'_>,
+    x: PyReadonlyArray1<'_, u16>,
+    y: PyReadonlyArray1<'_, u16>,
+    width: u32,
+    height: u32,
+) -> PyResult<(u64, u64, u64)> {
+    let (xs, ys) = (exact(&x, "x")?, exact(&y, "y")?);
+    let a = py
+        .detach_guarded("events::activity", || {
+            events::activity(xs, ys, width, height)
+        })?
+        .py()?;
+    Ok((a.pixels, a.active, a.supported))
+}
+
 /// Time surface, (H, W, 2) float32 (ON, OFF).
 #[pyfunction]
 #[pyo3(signature = (x, y, t_ns, p, width, height, t_start_ns, t_end_ns, tau_ms))]

@@ -83,6 +83,7 @@ fn _core(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(events::_e3ct, m)?)?;
     m.add_class::<events::PyHotPixels>()?;
     m.add_function(wrap_pyfunction!(events::_count_image, m)?)?;
+    m.add_function(wrap_pyfunction!(events::_event_activity, m)?)?;
     m.add_function(wrap_pyfunction!(events::_time_surface, m)?)?;
     m.add_function(wrap_pyfunction!(events::_voxel_grid, m)?)?;
     m.add_function(wrap_pyfunction!(events::_e3ct_scales, m)?)?;

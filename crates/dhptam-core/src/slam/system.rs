@@ -16,9 +16,9 @@ use super::map::Map;
 use super::mapping::{cull_keyframes, fuse_and_refind, local_mapping};
 use super::tracking::{
     bootstrap, bridge_keyframe, commit_tracked, consecutive_pose, constant_velocity_prediction,
-    hold_pose, last_pose, predict_only, reference_motion, reference_pose, reinitialise,
-    retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame, TrackContext,
-    Tracked, TrackerState,
+    hold_before, hold_pose, last_pose, predict_only, reference_motion, reference_pose,
+    reinitialise, retrack_after_correction, stereo_match, track_local_map, Bridge, StereoFrame,
+    TrackContext, Tracked, TrackerState,
 };
 use super::{lock, persist, read_lock, write_lock, StereoCalibration, TrackResult, TrackState};
 use crate::config::Config;
@@ -313,7 +313,8 @@ pub struct TrackingTotals {
     pub relocalisations: u64,
     /// Frames moved on by the motion model without being tracked ([`System::predict`]).
     pub predicted: u64,
-    /// Quiet frames that could not be tracked and kept the last pose (state `Held`).
+    /// Quiet frames that could not be tracked and kept the last pose (state `Held`), and
+    /// quiet frames of event images before the first map, held at its pose.
     pub held: u64,
     /// Tracked poses rejected for jumping away from the constant-velocity prediction
     /// (`[tracking] max_jump_ratio`); each such frame went on to relocalisation.
@@ -338,6 +339,9 @@ pub struct System {
     /// Median depth (m, rectified left camera) of the map points the last measured frame
     /// tracked ([`System::tracked_depth`]).
     tracked_depth: Option<f64>,
+    /// Times of the quiet frames of event images seen before the first map (the camera at
+    /// rest): held at the first map's pose once it is made ([`super::tracking::hold_before`]).
+    rest_before_map: Vec<i64>,
 }
 
 /// Median of the depths (z in `cam_from_world`'s camera, metres) of the map points `ids`;
@@ -458,6 +462,7 @@ impl System {
             workers: Vec::new(),
             closed: false,
             tracked_depth: None,
+            rest_before_map: Vec::new(),
         };
         if threaded {
             let queue = system.shared.config.mapping.queue as usize;
@@ -694,9 +699,25 @@ impl System {
             cfg: &c.tracking,
             tri: &c.triangulation,
         };
+        // A quiet window's event images show sensor noise: such images (mode `events`, or
+        // fusion's DVS-biased rendering) never start a map or a map segment.
+        let noise_only = frame.quiet && (c.fusion.mode == FusionMode::Events || frame.dvs_biased);
         let outcome = if self.state.reference.is_none() {
-            let mut map = write_lock(&shared.map);
-            bootstrap(&mut map, &mut self.state, &frame, &ctx)
+            if noise_only {
+                log::info!("tracking: t={t_ns} ns: quiet event window; not initialised on noise");
+                self.rest_before_map.push(t_ns);
+                self.lose(t_ns, &Se3::identity())
+            } else {
+                let mut map = write_lock(&shared.map);
+                let outcome = bootstrap(&mut map, &mut self.state, &frame, &ctx);
+                // The camera sat still until the first map: those frames are held at its
+                // pose. A frame with structure that did not initialise may have moved.
+                let rest = std::mem::take(&mut self.rest_before_map);
+                if let Some(kf) = outcome.keyframe {
+                    self.totals.held += hold_before(&mut map, kf, &rest) as u64;
+                }
+                outcome
+            }
         } else {
             // After a loss the motion model is stale (the last pose is frames old): picking
             // the track up again from it needs the evidence a relocalisation needs, and the
@@ -790,7 +811,7 @@ impl System {
                 }
                 // A quiet window (the camera likely at rest): its event images show sensor
                 // noise, which neither relocalises nor makes a map segment worth keeping.
-                None if frame.quiet && !self.state.lost => {
+                None if frame.quiet && (!self.state.lost || noise_only) => {
                     let mut map = write_lock(&shared.map);
                     match hold_pose(&mut map, &mut self.state, t_ns) {
                         Some(held) => {
@@ -940,10 +961,6 @@ impl System {
         })
     }
 
-    /// PnP verification against candidate keyframes, then tracking against the matched
-    /// keyframe's local map from the PnP pose. The candidates: the place query's with the
-    /// frame's embedding, then, when the previous frame was tracked, its reference keyframe
-    /// (`[tracking] relocalise_reference`).
     /// Marks the tracker lost at `t_ns` (logged when the loss starts): the frame's outcome,
     /// at the motion model's prediction `predicted` (`cam_from_world`).
     fn lose(&mut self, t_ns: i64, predicted: &Se3) -> super::tracking::FrameOutcome {
@@ -959,6 +976,10 @@ impl System {
         }
     }
 
+    /// PnP verification against candidate keyframes, then tracking against the matched
+    /// keyframe's local map from the PnP pose. The candidates: the place query's with the
+    /// frame's embedding, then, when the previous frame was tracked, its reference keyframe
+    /// (`[tracking] relocalise_reference`).
     fn relocalise(
         &self,
         frame: &StereoFrame,

@@ -631,6 +631,35 @@ pub fn bootstrap(
     }
 }
 
+/// Records the frames at `times_ns`, seen before the map began with keyframe `keyframe`
+/// (quiet frames of event images, whose camera was at rest), as held at that keyframe's
+/// pose ([`FrameRecord::held`]), just before the keyframe's own record. Returns how many;
+/// times at or after the keyframe's record are skipped.
+pub fn hold_before(map: &mut Map, keyframe: u64, times_ns: &[i64]) -> usize {
+    let Some(at) = map.trajectory.iter().position(|r| r.keyframe == keyframe) else {
+        return 0;
+    };
+    let first = map.trajectory[at].t_ns;
+    let held: Vec<FrameRecord> = times_ns
+        .iter()
+        .filter(|&&t| t < first)
+        .map(|&t_ns| FrameRecord {
+            t_ns,
+            keyframe,
+            kf_from_cam: Se3::identity(),
+            predicted: true,
+            held: true,
+            position_cov: None,
+        })
+        .collect();
+    let count = held.len();
+    if count > 0 {
+        log::info!("tracking: {count} quiet frames before the first map held at its pose");
+    }
+    map.trajectory.splice(at..at, held);
+    count
+}
+
 /// Starts a new map segment from `frame`'s own stereo points at `world_from_cam` (the
 /// constant-velocity prediction) when the frame could be neither tracked nor relocalised.
 /// A segment started right after another one that no frame was tracked against goes on from
