@@ -38,7 +38,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("sequences", nargs="+", help="simulated sequence folders (TUM-VIE layout)")
     args = parser.parse_args(argv)
     print(
-        "| sequence | windows | at rest | flagged at rest | flagged moving | max share at rest | min share moving |"
+        "| sequence | windows | at rest | flagged at rest | flagged moving "
+        "| max share at rest | min share moving |"
     )
     print("|---|---:|---:|---:|---:|---:|---:|")
     for path in args.sequences:
