@@ -1827,6 +1827,94 @@ fn a_new_map_segment_goes_on_with_the_velocity_its_setting_names() {
     assert!(err.contains("segment_velocity"), "{err}");
 }
 
+/// `f`'s view as an event camera at rest would give it (sensor noise), `k` periods later: the
+/// signs of its descriptors' entries flipped by a mask drawn afresh for each `k`, the same in
+/// both views (stereo pairs still match, nothing matches across frames or the map).
+fn noise_view(f: &SyntheticFrame, k: i64, period_ns: i64) -> SyntheticFrame {
+    let mut g = f.clone();
+    g.t_ns += k * period_ns;
+    // splitmix64 draws until about half the 32 signs flip (far from every other mask).
+    let mut state = k as u64;
+    let mask = loop {
+        state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        let m = (z ^ (z >> 31)) & 0xffff_ffff;
+        if (14..=18).contains(&m.count_ones()) {
+            break m;
+        }
+    };
+    for d in [&mut g.left.descriptors, &mut g.right.descriptors] {
+        for c in d.chunks_exact_mut(32) {
+            for (j, x) in c.iter_mut().enumerate() {
+                if mask >> j & 1 == 1 {
+                    *x = -*x;
+                }
+            }
+        }
+    }
+    g
+}
+
+#[test]
+fn quiet_event_frames_before_the_first_map_are_held_at_its_pose() {
+    let o = SyntheticOptions {
+        landmarks: 1000,
+        frames: 30,
+        seed: 6,
+        ..Default::default()
+    };
+    let frames = generate(&o);
+    // The camera rests at frame 0's pose for `rest` frames of noise, then moves along frames
+    // 0.. (shifted after the rest).
+    let rest = 6i64;
+    let run = |mode: FusionMode| {
+        let mut config = Config::default();
+        config.fusion.mode = mode;
+        let mut system = System::new(o.calib, config, false).unwrap();
+        let mut states = Vec::new();
+        for k in 0..rest {
+            let g = noise_view(&frames[0], k - rest, o.period_ns);
+            let (mut left, mut right) = frame_features(&g);
+            left.quiet = true;
+            right.quiet = true;
+            states.push(system.track(g.t_ns, left, right).unwrap().state);
+        }
+        for f in &frames {
+            let (left, right) = frame_features(f);
+            states.push(system.track(f.t_ns, left, right).unwrap().state);
+        }
+        (system, states)
+    };
+    // Mode `events`: no map from noise; the rest is held at the first map's pose once the
+    // moving camera makes it.
+    let (system, states) = run(FusionMode::Events);
+    let r = rest as usize;
+    assert!(
+        states[..r].iter().all(|s| *s == TrackState::Lost),
+        "{states:?}"
+    );
+    assert_eq!(states[r], TrackState::Initialised, "{states:?}");
+    assert_eq!(system.tracking_totals().held, rest as u64);
+    assert_eq!(system.tracking_totals().segments, 0);
+    let written = system.tracked_trajectory();
+    assert_eq!(written.len(), frames.len() + r);
+    let first = frames[0].t_ns;
+    for (k, (t_ns, pose)) in written[..r].iter().enumerate() {
+        assert_eq!(*t_ns, first + (k as i64 - rest) * o.period_ns);
+        assert!(
+            (written[r].1.inverse() * *pose).log().norm() < 1e-12,
+            "frame {k}"
+        );
+    }
+    assert!(written.windows(2).all(|w| w[0].0 < w[1].0));
+    // Frame images (mode `fusion`, not DVS-biased) still make a map at rest.
+    let (system, states) = run(FusionMode::Fusion);
+    assert_eq!(states[0], TrackState::Initialised, "{states:?}");
+    assert_eq!(system.tracking_totals().held, rest as u64 - 1);
+}
+
 #[test]
 fn a_quiet_frame_that_cannot_be_tracked_holds_its_pose_and_keeps_the_map() {
     let o = SyntheticOptions {
@@ -1842,32 +1930,7 @@ fn a_quiet_frame_that_cannot_be_tracked_holds_its_pose_and_keeps_the_map() {
     // nothing matches across frames or the map), flagged quiet when `quiet`; then it moves
     // on through frames 40.. (their timestamps shifted).
     let (stop, rest) = (39usize, 10i64);
-    let noise = |k: i64| {
-        let mut g = frames[stop].clone();
-        g.t_ns += k * o.period_ns;
-        // splitmix64 draws until about half the 32 signs flip (far from every other mask).
-        let mut state = k as u64;
-        let mask = loop {
-            state = state.wrapping_add(0x9e37_79b9_7f4a_7c15);
-            let mut z = state;
-            z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-            let m = (z ^ (z >> 31)) & 0xffff_ffff;
-            if (14..=18).contains(&m.count_ones()) {
-                break m;
-            }
-        };
-        for d in [&mut g.left.descriptors, &mut g.right.descriptors] {
-            for c in d.chunks_exact_mut(32) {
-                for (j, x) in c.iter_mut().enumerate() {
-                    if mask >> j & 1 == 1 {
-                        *x = -*x;
-                    }
-                }
-            }
-        }
-        g
-    };
+    let noise = |k: i64| noise_view(&frames[stop], k, o.period_ns);
     let run = |quiet: bool| {
         let mut system = System::new(o.calib, Config::default(), false).unwrap();
         let (mut states, mut poses) = (Vec::new(), Vec::new());

@@ -1213,6 +1213,8 @@ impl System {
         *write_lock(&self.shared.map) = map;
         self.state = state;
         self.descriptor = descriptor;
+        // Frames seen before the loaded map are not at its pose.
+        self.rest_before_map.clear();
         Ok(())
     }
 
