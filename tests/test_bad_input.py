@@ -313,7 +313,10 @@ def test_run_handles_featureless_input_gracefully(
 ) -> None:
     """Documented behaviour: frames without features (black, saturated) and windows without
     events do not fail the run; those frames are reported ``lost`` (unless events carry them
-    in ``fusion``), the frames with content are tracked, and every output file is written."""
+    in ``fusion``), the frames with content are tracked, and every output file is written.
+    Frame 0, whose event window ends a few milliseconds into the recording, is sensor noise:
+    in ``fusion`` with failed frames its image is events only, and it is ``held`` at the pose
+    of the first map instead of making one."""
     damage(desk)
     out = tmp_path / "out"
     code, err = _cli(_desk_argv(desk, out, mode), capsys)
@@ -321,7 +324,8 @@ def test_run_handles_featureless_input_gracefully(
     rows = (out / "frames.csv").read_text().splitlines()
     assert len(rows) == 1 + 12
     states = [r.split(",")[rows[0].split(",").index("state")] for r in rows[1:]]
-    assert set(states) <= {"ok", "initialised", "lost", "relocalised"}, states
+    assert set(states) <= {"ok", "initialised", "lost", "relocalised", "held"}, states
+    assert "held" not in states[1:], states
     assert all(states[k] != "lost" for k in tracked), states
     for name in ("trajectory.tum", "keyframes.tum", "map.ply", "timing.json", "config.toml"):
         assert (out / name).is_file()
