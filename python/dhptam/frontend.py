@@ -633,15 +633,14 @@ class Frontend:
         )
 
     def _rectified_events(self, side: str, t0: int, t1: int) -> tuple[EventWindow, int]:
-        window, count, _, _ = self._rectified_events_counted(side, t0, t1)
+        window, count, _ = self._rectified_events_counted(side, t0, t1)
         return window, count
 
     def _rectified_events_counted(
         self, side: str, t0: int, t1: int, raw: EventWindow | None = None
-    ) -> tuple[EventWindow, int, int, Activity | None]:
-        """The rectified window, its raw event count, its raw ON-event count and the raw
-        window's pixel activity (``None`` with ``[fusion] quiet_structure = 0``); ``raw``: the
-        window already read, else it is read here. The window first updates the camera's
+    ) -> tuple[EventWindow, int, int]:
+        """The rectified window, its raw event count and its raw ON-event count (``raw``: the
+        window already read, else it is read here). The window first updates the camera's
         hot-pixel detector, and the events of its hot pixels are dropped."""
         if raw is None:
             raw = self.sequence.events[side].window(t0, t1)
@@ -649,12 +648,7 @@ class Frontend:
         if hot is not None and hot.update(raw.x, raw.y, (t1 - t0) * 1e-9):
             self._rectifiers[side].set_masked(hot.pixels())
         x, y, t, p = self._rectifiers[side].apply(raw.x, raw.y, raw.t_ns, raw.p, t0, t1)
-        pixels = None
-        if self.quiet_structure > 0.0:
-            # On the sensor's own pixels, whose neighbours are the ones noise is independent of.
-            cam = self.sequence.calibration.cameras[f"event_{side}"]
-            pixels = activity(raw.x, raw.y, width=cam.width, height=cam.height)
-        return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw), int(np.count_nonzero(raw.p)), pixels
+        return EventWindow(x=x, y=y, t_ns=t, p=p), len(raw), int(np.count_nonzero(raw.p))
 
     def _window_count(self, index: int) -> int:
         """Raw events (left + right) in the window of frame ``index``, read once."""
@@ -718,12 +712,16 @@ class Frontend:
         on_counts: dict[str, int] = {}
         tensors = []
         rect_counts: dict[str, int] = {}
-        activities: list[Activity | None] = []
+        activities: list[Activity] = []
         for k, side in enumerate(("left", "right")):
-            window, raw_counts[side], on_counts[side], pixels = self._rectified_events_counted(
-                side, t0, t1, None if raw is None else raw[k]
+            raw_window = self.sequence.events[side].window(t0, t1) if raw is None else raw[k]
+            if self.quiet_structure > 0.0:
+                # On the sensor's own pixels, whose neighbours are those noise is independent of.
+                cam = self.sequence.calibration.cameras[f"event_{side}"]
+                activities.append(activity(raw_window.x, raw_window.y, width=cam.width, height=cam.height))
+            window, raw_counts[side], on_counts[side] = self._rectified_events_counted(
+                side, t0, t1, raw_window
             )
-            activities.append(pixels)
             rect_counts[side] = len(window)
             tensors.append(
                 e3ct(
@@ -754,9 +752,7 @@ class Frontend:
             on_right=on_counts["right"],
             hot_left=self._rectifiers["left"].masked_count,
             hot_right=self._rectifiers["right"].masked_count,
-            activity=None
-            if activities[0] is None or activities[1] is None
-            else (activities[0], activities[1]),
+            activity=(activities[0], activities[1]) if activities else None,
         )
         return tensors, stats
 
